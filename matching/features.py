@@ -1,0 +1,85 @@
+"""Keypoint detection and description (SIFT, ORB) with a typed config.
+
+`Features` holds keypoints in the pixel frame of the image they were computed on (OpenCV
+convention); callers map them to original-image coordinates (see `matching.views`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+DetectorName = Literal["sift", "orb"]
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Which detector and its budget. `max_features = 0` means unlimited (SIFT only)."""
+
+    name: DetectorName = "sift"
+    max_features: int = 0
+    root_sift: bool = False  # L1-normalise + sqrt SIFT descriptors (Arandjelovic 2012)
+
+    @property
+    def key(self) -> str:
+        return f"{self.name}{self.max_features}{'r' if self.root_sift else ''}"
+
+    @property
+    def norm(self) -> int:
+        return cv2.NORM_HAMMING if self.name == "orb" else cv2.NORM_L2
+
+
+@dataclass
+class Features:
+    """Keypoints (N, 2) float32 px, their size (px) and angle (deg), and descriptors (N, D)."""
+
+    kpts: NDArray[np.float32]
+    sizes: NDArray[np.float32]
+    angles: NDArray[np.float32]
+    descriptors: NDArray  # uint8 (ORB, 32 bytes) or float32 (SIFT, 128)
+
+    def __len__(self) -> int:
+        return int(len(self.kpts))
+
+    def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> "Features":
+        return Features(self.kpts[keep], self.sizes[keep], self.angles[keep], self.descriptors[keep])
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.kpts.nbytes + self.sizes.nbytes + self.angles.nbytes + self.descriptors.nbytes)
+
+    @staticmethod
+    def empty(dim: int = 128, dtype=np.float32) -> "Features":
+        return Features(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
+                        np.zeros(0, np.float32), np.zeros((0, dim), dtype))
+
+
+def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
+    """A fresh OpenCV detector (they are not thread-safe to share, so one per call)."""
+    if cfg.name == "sift":
+        return cv2.SIFT_create(nfeatures=cfg.max_features)
+    if cfg.name == "orb":
+        # fastThreshold lowered from 20 so low-contrast simulated views still yield keypoints
+        return cv2.ORB_create(nfeatures=cfg.max_features or 1000, fastThreshold=10)
+    raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift' or 'orb'")
+
+
+def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] | None = None) -> Features:
+    """Detect and describe `img` (8-bit gray). `mask` (uint8, nonzero = valid) limits detection."""
+    det = make_detector(cfg)
+    kps, desc = det.detectAndCompute(img, mask)
+    if desc is None or not kps:
+        return Features.empty(32 if cfg.name == "orb" else 128, np.uint8 if cfg.name == "orb" else np.float32)
+    kpts = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+    sizes = np.array([k.size for k in kps], np.float32)
+    angles = np.array([k.angle for k in kps], np.float32)
+    if cfg.name == "sift":
+        desc = desc.astype(np.float32)
+        if cfg.root_sift:
+            desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-7)
+            desc = np.sqrt(desc) * 512.0  # keep OpenCV's L2 scale (~512) for Eq. 1 and ratios
+    return Features(kpts, sizes, angles, desc)

@@ -1,0 +1,45 @@
+"""Method names -> matcher objects, so the CLI, the benchmarks and the pipeline share one list."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from numpy.typing import NDArray
+
+from .store import FeatureStore
+from .types import PairResult
+
+METHODS: tuple[str, ...] = ("extra-affine", "sift", "orb", "asift", "aorb")
+
+
+class PairMatcher(Protocol):
+    """Anything that matches two images of a FeatureStore into a PairResult.
+
+    Keypoints in the result are in the pixel frame of the images as stored (OpenCV convention).
+    Implementations must be safe to call from several threads at once on one store.
+    """
+
+    name: str
+
+    def match(self, store: FeatureStore, name0: str, name1: str) -> PairResult: ...
+
+
+def get_matcher(method: str, **overrides) -> PairMatcher:
+    """The matcher called `method` (one of METHODS); `overrides` set fields of its config."""
+    if method == "extra-affine":
+        from .matcher import ExtraAffineMatcher, MatcherConfig
+
+        return ExtraAffineMatcher(MatcherConfig.from_overrides(**overrides))
+    if method in ("sift", "orb", "asift", "aorb"):
+        from .baselines import make_baseline
+
+        return make_baseline(method, **overrides)
+    raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+
+
+def match_images(img0: NDArray, img1: NDArray, method: str = "extra-affine", **overrides) -> PairResult:
+    """Match two 8-bit gray images with a throw-away store (convenience for scripts)."""
+    store = FeatureStore()
+    store.add_image("0", img0)
+    store.add_image("1", img1)
+    return get_matcher(method, **overrides).match(store, "0", "1")

@@ -1,0 +1,123 @@
+"""FeatureStore: per-image features computed once and shared by every pair the image is in.
+
+Entries are keyed by (image name, what was computed), e.g. ("a.jpg", "orb1000@t2.000_p36.00_s2.00_nn").
+`get_or_compute` is thread-safe and computes each key exactly once even when several pair tasks
+ask for it at the same moment (a per-key lock), so pairs can run in a thread pool. With a
+`cache_dir`, entries also persist as `.npz` files named by a hash of the image content and the
+key, so an interrupted run resumes without recomputing; files are written to a temporary name
+and renamed, so a kill never leaves a half-written cache entry.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .features import Features
+
+
+class FeatureStore:
+    """Images by name and everything computed from them, computed once."""
+
+    def __init__(self, cache_dir: str | Path | None = None):
+        self.cache_dir = Path(cache_dir) if cache_dir else None
+        if self.cache_dir:
+            self.cache_dir.mkdir(parents=True, exist_ok=True)
+        self._images: dict[str, NDArray[np.uint8]] = {}
+        self._digests: dict[str, str] = {}
+        self._entries: dict[tuple[str, str], object] = {}
+        self._locks: dict[tuple[str, str], threading.Lock] = {}
+        self._guard = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    # images -------------------------------------------------------------------------------
+    def add_image(self, name: str, gray: NDArray[np.uint8]) -> None:
+        """Register an 8-bit gray image under `name` (replacing one of the same name)."""
+        if gray.ndim != 2 or gray.dtype != np.uint8:
+            raise ValueError(f"{name}: FeatureStore expects 8-bit gray images")
+        with self._guard:
+            self._images[name] = gray
+            self._digests[name] = hashlib.sha1(gray.tobytes() + str(gray.shape).encode()).hexdigest()[:16]
+            for k in [k for k in self._entries if k[0] == name]:
+                del self._entries[k]
+
+    def image(self, name: str) -> NDArray[np.uint8]:
+        return self._images[name]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._images
+
+    @property
+    def names(self) -> list[str]:
+        return list(self._images)
+
+    def drop_image(self, name: str) -> None:
+        """Forget an image and its in-memory entries (disk cache is kept)."""
+        with self._guard:
+            self._images.pop(name, None)
+            for k in [k for k in self._entries if k[0] == name]:
+                del self._entries[k]
+
+    # entries ------------------------------------------------------------------------------
+    def get_or_compute(self, name: str, key: str, compute: Callable[[], Features],
+                       persist: bool = True) -> Features:
+        """The entry (name, key), computing it with `compute()` only the first time."""
+        k = (name, key)
+        with self._guard:
+            if k in self._entries:
+                self.hits += 1
+                return self._entries[k]  # type: ignore[return-value]
+            lock = self._locks.setdefault(k, threading.Lock())
+        with lock:
+            with self._guard:
+                if k in self._entries:
+                    self.hits += 1
+                    return self._entries[k]  # type: ignore[return-value]
+            feats = self._load(name, key) if persist else None
+            if feats is None:
+                feats = compute()
+                if persist:
+                    self._save(name, key, feats)
+                with self._guard:
+                    self.misses += 1
+            else:
+                with self._guard:
+                    self.hits += 1
+            with self._guard:
+                self._entries[k] = feats
+            return feats
+
+    def _path(self, name: str, key: str) -> Path | None:
+        if self.cache_dir is None:
+            return None
+        digest = self._digests[name]
+        h = hashlib.sha1(key.encode()).hexdigest()[:12]
+        return self.cache_dir / digest[:2] / f"{digest}_{h}.npz"
+
+    def _load(self, name: str, key: str) -> Features | None:
+        p = self._path(name, key)
+        if p is None or not p.exists():
+            return None
+        try:
+            with np.load(p) as z:
+                if str(z["key"]) != key:
+                    return None
+                return Features(z["kpts"], z["sizes"], z["angles"], z["descriptors"])
+        except Exception:  # a damaged cache file is recomputed, never trusted
+            return None
+
+    def _save(self, name: str, key: str, f: Features) -> None:
+        p = self._path(name, key)
+        if p is None:
+            return
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_name(f"{p.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
+        np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles, descriptors=f.descriptors)
+        os.replace(tmp, p)

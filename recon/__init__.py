@@ -1,0 +1,1 @@
+"""recon: scenes -> extra-affine matches -> COLMAP database -> SfM -> outputs, CLI and visualisation."""

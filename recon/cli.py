@@ -1,0 +1,67 @@
+"""The `recon` command line: a thin typer layer over library functions.
+
+Each command lives in its own `recon/cmd_*.py` module exposing `register(app)`. `main()` turns
+user errors (`InputError`, `UserError`) into one-line messages with a non-zero exit, never a
+traceback; Ctrl-C exits 130 after whatever was written has been left consistent.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from matching.errors import InputError
+
+app = typer.Typer(
+    name="recon",
+    help="Extra-affine wide-viewpoint matching and COLMAP reconstruction.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+class UserError(Exception):
+    """A problem the user can fix (bad arguments, refused output folder); printed on one line."""
+
+
+def _register_commands() -> None:
+    import importlib
+    import pkgutil
+
+    import recon
+
+    for mod in sorted(m.name for m in pkgutil.iter_modules(recon.__path__) if m.name.startswith("cmd_")):
+        importlib.import_module(f"recon.{mod}").register(app)
+
+
+def main(argv: list[str] | None = None) -> int:
+    _register_commands()
+    try:
+        app(args=argv, standalone_mode=False)
+    except (InputError, UserError) as e:
+        print(f"recon: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("recon: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    except typer.Exit as e:
+        return int(e.exit_code or 0)
+    except SystemExit as e:
+        return int(e.code or 0) if isinstance(e.code, int) else 1
+    except Exception as e:  # click usage errors and friends
+        import click
+
+        if isinstance(e, click.exceptions.ClickException):
+            e.show()
+            return e.exit_code
+        if isinstance(e, click.exceptions.Abort):
+            print("recon: aborted", file=sys.stderr)
+            return 130
+        raise
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
