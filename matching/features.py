@@ -35,18 +35,21 @@ class DetectorConfig:
 
 @dataclass
 class Features:
-    """Keypoints (N, 2) float32 px, their size (px) and angle (deg), and descriptors (N, D)."""
+    """Keypoints (N, 2) float32 px, their size (px) and angle (deg), descriptors (N, D) and
+    detector responses (N,) (None when unknown)."""
 
     kpts: NDArray[np.float32]
     sizes: NDArray[np.float32]
     angles: NDArray[np.float32]
     descriptors: NDArray  # uint8 (ORB, 32 bytes) or float32 (SIFT, 128)
+    responses: NDArray[np.float32] | None = None
 
     def __len__(self) -> int:
         return int(len(self.kpts))
 
     def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> "Features":
-        return Features(self.kpts[keep], self.sizes[keep], self.angles[keep], self.descriptors[keep])
+        resp = None if self.responses is None else self.responses[keep]
+        return Features(self.kpts[keep], self.sizes[keep], self.angles[keep], self.descriptors[keep], resp)
 
     @property
     def nbytes(self) -> int:
@@ -77,9 +80,10 @@ def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] 
     kpts = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
     sizes = np.array([k.size for k in kps], np.float32)
     angles = np.array([k.angle for k in kps], np.float32)
+    responses = np.array([k.response for k in kps], np.float32)
     if cfg.name == "sift":
         desc = desc.astype(np.float32)
         if cfg.root_sift:
             desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-7)
             desc = np.sqrt(desc) * 512.0  # keep OpenCV's L2 scale (~512) for Eq. 1 and ratios
-    return Features(kpts, sizes, angles, desc)
+    return Features(kpts, sizes, angles, desc, responses)

@@ -109,7 +109,8 @@ class FeatureStore:
             with np.load(p) as z:
                 if str(z["key"]) != key:
                     return None
-                return Features(z["kpts"], z["sizes"], z["angles"], z["descriptors"])
+                resp = z["responses"] if "responses" in z.files else None
+                return Features(z["kpts"], z["sizes"], z["angles"], z["descriptors"], resp)
         except Exception:  # a damaged cache file is recomputed, never trusted
             return None
 
@@ -119,5 +120,7 @@ class FeatureStore:
             return
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f"{p.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
-        np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles, descriptors=f.descriptors)
+        extra = {} if f.responses is None else {"responses": f.responses}
+        np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles,
+                 descriptors=f.descriptors, **extra)
         os.replace(tmp, p)

@@ -1,0 +1,113 @@
+"""Coarse search (§III-B): ORB-match every simulated view of the reference against the target.
+
+Views are warped with nearest-neighbour interpolation (fast; ORB only needs to rank views),
+ORB keypoints are mapped back to the original reference image and cached per view in the
+FeatureStore, so another pair with the same reference reuses them. Every view's score is
+returned, not only the best one: the fine stage and the escalation use the ranking, and the
+diagnostics show the whole (tilt, longitude) grid.
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from .features import DetectorConfig, Features, detect
+from .matching_utils import ransac_homography, ratio_match
+from .store import FeatureStore
+from .types import CoarseScore, ViewParams
+from .views import Interp, map_to_original, simulate
+
+
+@dataclass(frozen=True)
+class CoarseConfig:
+    """ORB budget and ratio (paper: 1000, 0.75), what ranks the views, and the RANSAC check.
+
+    `rank_by`: "matches" is the paper's (most ratio-test matches); "inliers" ranks by RANSAC
+    homography inliers among them, which ignores views that match many repeated patterns
+    wrongly. Both are always computed and reported. `accept_inliers`: with an undecided
+    reference, a first side whose best view has this many inliers is kept without trying the other.
+    `max_area_ratio`: the coarse stage renders a view at most this many times the original's
+    area (its zoom capped at sqrt(ratio * t)); the paper's zoom s = 1 + k*ds makes every steep
+    view ~2x the original's area, which doubles ORB's cost while ORB only has to rank views.
+    The fine stage renders the view at its full zoom. 0 disables the cap.
+    """
+
+    orb_features: int = 1000
+    ratio: float = 0.75
+    rank_by: Literal["matches", "inliers"] = "inliers"
+    ransac_px: float = 8.0
+    interp: Interp = "nearest"
+    antialias: bool = False
+    accept_inliers: int = 40
+    max_area_ratio: float = 1.0
+    seed: int = 0
+
+    @property
+    def detector(self) -> DetectorConfig:
+        return DetectorConfig("orb", self.orb_features)
+
+
+def original_features(store: FeatureStore, name: str, det: DetectorConfig) -> Features:
+    """Features of the unwarped image (cached as `<det>@orig`)."""
+    return store.get_or_compute(name, f"{det.key}@orig", lambda: detect(store.image(name), det))
+
+
+def view_features(store: FeatureStore, name: str, view: ViewParams, det: DetectorConfig,
+                  interp: Interp, antialias: bool) -> Features:
+    """Features of one simulated view, keypoints mapped back to the original image frame.
+
+    Keypoints that map outside the original are dropped. The identity view is the original.
+    """
+    if view.is_identity:
+        return original_features(store, name, det)
+    key = f"{det.key}@{view.key}_{interp}{'_aa' if antialias else ''}"
+
+    def compute() -> Features:
+        img = store.image(name)
+        sv = simulate(img, view, interp, antialias)
+        f = detect(sv.image, det, sv.mask)
+        kpts, inside = map_to_original(f.kpts, sv.A_view_from_orig, (img.shape[1], img.shape[0]))
+        f.kpts = kpts
+        return f.subset(inside)
+
+    return store.get_or_compute(name, key, compute)
+
+
+def coarse_render_view(view: ViewParams, max_area_ratio: float) -> ViewParams:
+    """The view as the coarse stage renders it: same (t, phi), zoom capped (see CoarseConfig)."""
+    if max_area_ratio <= 0:
+        return view
+    s = min(view.s, math.sqrt(max_area_ratio * view.t))
+    return ViewParams(view.t, view.phi, round(s, 6))
+
+
+def score_view(store: FeatureStore, ref: str, target: str, view: ViewParams, cfg: CoarseConfig) -> CoarseScore:
+    det = cfg.detector
+    fv = view_features(store, ref, coarse_render_view(view, cfg.max_area_ratio), det, cfg.interp, cfg.antialias)
+    ft = original_features(store, target, det)
+    m, _ = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_HAMMING, cfg.ratio)
+    inl = 0
+    if len(m) >= 8:
+        _, mask = ransac_homography(fv.kpts[m[:, 0]], ft.kpts[m[:, 1]], cfg.ransac_px, seed=cfg.seed, max_iters=2000)
+        inl = int(mask.sum())
+    score = float(len(m) if cfg.rank_by == "matches" else inl)
+    return CoarseScore(view=view, matches=int(len(m)), inliers=inl, score=score)
+
+
+def coarse_search(store: FeatureStore, ref: str, target: str, views: list[ViewParams],
+                  cfg: CoarseConfig, executor: Executor | None = None) -> list[CoarseScore]:
+    """Scores of all `views` of `ref` against `target`, in grid order (not sorted)."""
+    if executor is None:
+        return [score_view(store, ref, target, v, cfg) for v in views]
+    return list(executor.map(lambda v: score_view(store, ref, target, v, cfg), views))
+
+
+def rank_views(scores: list[CoarseScore]) -> list[CoarseScore]:
+    """Best first; ties broken by raw matches, then by smaller tilt (the cheaper, likelier view)."""
+    return sorted(scores, key=lambda c: (-c.score, -c.matches, c.view.t, c.view.phi))

@@ -1,0 +1,153 @@
+"""Fine stage (§III-C): SIFT on Lanczos re-simulations of the chosen views against the target.
+
+Each chosen view of the reference is re-warped with Lanczos (8x8 kernel), SIFT keypoints are
+detected in it and mapped back to the original reference image, and its descriptors are
+ratio-matched against the target's SIFT. Several views (the top of the coarse search) can be
+fused: their matches are concatenated and made one-to-one on the target side, keeping the
+closest descriptor. The paper uses a single view (`top_k = 1`).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Executor
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .coarse import original_features, view_features
+from .features import DetectorConfig
+from .matching_utils import ratio_match, unique_train
+from .store import FeatureStore
+from .types import ViewParams
+from .views import Interp
+
+
+@dataclass(frozen=True)
+class FineConfig:
+    """SIFT ratio (paper: 0.75), interpolation (paper: Lanczos) and anti-aliasing of the views."""
+
+    ratio: float = 0.75
+    interp: Interp = "lanczos"
+    antialias: bool = True
+    root_sift: bool = False
+    sift_features: int = 0
+
+    @property
+    def detector(self) -> DetectorConfig:
+        return DetectorConfig("sift", self.sift_features, self.root_sift)
+
+
+@dataclass
+class FineMatches:
+    """Matches of fused views: reference keypoints (original frame), target keypoints, pairs."""
+
+    kpts_ref: NDArray[np.float32]
+    kpts_target: NDArray[np.float32]
+    matches: NDArray[np.int32]  # (K, 2): (index into kpts_ref, index into kpts_target)
+    distances: NDArray[np.float32]
+    per_view: dict[str, int]
+
+
+def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParams],
+               cfg: FineConfig, executor: Executor | None = None) -> FineMatches:
+    det = cfg.detector
+    ft = original_features(store, target, det)
+
+    def one(view: ViewParams):
+        fv = view_features(store, ref, view, det, cfg.interp, cfg.antialias)
+        m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio)
+        return fv, m, d
+
+    parts = list(executor.map(one, views)) if executor is not None and len(views) > 1 else [one(v) for v in views]
+    kpts_ref, matches, dists, per_view = [], [], [], {}
+    offset = 0
+    for view, (fv, m, d) in zip(views, parts):
+        per_view[view.key] = int(len(m))
+        if len(m):
+            used = np.unique(m[:, 0])
+            remap = np.full(len(fv), -1, np.int64)
+            remap[used] = np.arange(len(used)) + offset
+            kpts_ref.append(fv.kpts[used])
+            matches.append(np.stack([remap[m[:, 0]], m[:, 1]], axis=1).astype(np.int32))
+            dists.append(d)
+            offset += len(used)
+    if not matches:
+        return FineMatches(np.zeros((0, 2), np.float32), ft.kpts, np.zeros((0, 2), np.int32),
+                           np.zeros(0, np.float32), per_view)
+    m_all, d_all = unique_train(np.concatenate(matches), np.concatenate(dists))
+    return FineMatches(np.concatenate(kpts_ref), ft.kpts, m_all, d_all, per_view)
+
+
+def guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDArray,
+                 H_t_from_q: NDArray[np.float64], radius_px: float, ratio: float,
+                 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Ratio-test matching restricted to target keypoints within `radius_px` of H(query).
+
+    The homography from the first round predicts where each query keypoint lands; only target
+    keypoints near that prediction compete, so the ratio test rejects far fewer true matches
+    than the unconstrained one (COLMAP's guided matching, for planar pairs). A query with a
+    single candidate is kept when its descriptor distance is below the median of the accepted
+    two-candidate matches. Float (SIFT) descriptors; candidates are found on a grid of
+    `radius_px` cells, so the cost is linear in the number of keypoints.
+    """
+    empty = np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
+    if len(kpts_q) == 0 or len(kpts_t) == 0:
+        return empty
+    q = np.c_[kpts_q.astype(np.float64), np.ones(len(kpts_q))] @ H_t_from_q.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pred = q[:, :2] / q[:, 2:3]
+    ok = np.isfinite(pred).all(axis=1) & (q[:, 2] > 0)
+    qi = np.flatnonzero(ok)
+    if len(qi) == 0:
+        return empty
+    pred = pred[qi]
+    # candidate pairs via a hash grid of cell size radius: check the 3x3 neighbourhood
+    cell_t = np.floor(kpts_t / radius_px).astype(np.int64)
+    key_t = cell_t[:, 0] * 1_000_003 + cell_t[:, 1]
+    order_t = np.argsort(key_t, kind="stable")
+    key_sorted = key_t[order_t]
+    cell_q = np.floor(pred / radius_px).astype(np.int64)
+    rows_l, cols_l = [], []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            kq = (cell_q[:, 0] + dx) * 1_000_003 + (cell_q[:, 1] + dy)
+            lo = np.searchsorted(key_sorted, kq, "left")
+            hi = np.searchsorted(key_sorted, kq, "right")
+            cnt = hi - lo
+            if cnt.sum() == 0:
+                continue
+            r = np.repeat(np.arange(len(kq)), cnt)
+            starts = np.repeat(lo - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt)
+            c = order_t[np.arange(cnt.sum()) + starts]
+            rows_l.append(r)
+            cols_l.append(c)
+    if not rows_l:
+        return empty
+    rows = np.concatenate(rows_l)
+    cols = np.concatenate(cols_l)
+    d2 = ((pred[rows] - kpts_t[cols]) ** 2).sum(1)
+    near = d2 <= radius_px * radius_px
+    rows, cols = rows[near], cols[near]
+    if len(rows) == 0:
+        return empty
+    dd = np.linalg.norm(desc_q[qi[rows]].astype(np.float32) - desc_t[cols].astype(np.float32), axis=1)
+    order = np.lexsort((dd, rows))
+    rows, cols, dd = rows[order], cols[order], dd[order]
+    first = np.ones(len(rows), bool)
+    first[1:] = rows[1:] != rows[:-1]
+    idx_first = np.flatnonzero(first)
+    has_second = np.zeros(len(idx_first), bool)
+    nxt = idx_first + 1
+    valid_nxt = nxt < len(rows)
+    has_second[valid_nxt] = rows[nxt[valid_nxt]] == rows[idx_first[valid_nxt]]
+    best = dd[idx_first]
+    second = np.full(len(idx_first), np.inf, np.float32)
+    second[has_second] = dd[idx_first[has_second] + 1]
+    accept = best < ratio * second
+    if np.any(accept & has_second):
+        cap = float(np.median(best[accept & has_second]))
+        accept &= has_second | (best <= cap)
+    m = np.stack([qi[rows[idx_first[accept]]], cols[idx_first[accept]]], axis=1).astype(np.int32)
+    return m, best[accept].astype(np.float32)

@@ -1,0 +1,61 @@
+"""Descriptor matching helpers shared by the stages: ratio test, mutual check, RANSAC."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+
+def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75,
+                ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Lowe's ratio test with brute force: (K, 2) (query, train) indices and distances.
+
+    Brute force is exact and deterministic; with at most a few thousand descriptors per side
+    (ORB 1000, SIFT of one view) it is also faster than building a FLANN index.
+    """
+    if len(desc_q) < 1 or len(desc_t) < 2:
+        return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
+    bf = cv2.BFMatcher(norm, crossCheck=False)
+    knn = bf.knnMatch(desc_q, desc_t, k=2)
+    out, dist = [], []
+    for pair in knn:
+        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
+            out.append((pair[0].queryIdx, pair[0].trainIdx))
+            dist.append(pair[0].distance)
+    if not out:
+        return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
+    return np.asarray(out, np.int32), np.asarray(dist, np.float32)
+
+
+def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Keep, for every train index, only its closest query (one-to-one on the train side)."""
+    if len(matches) == 0:
+        return matches, dist
+    order = np.lexsort((dist, matches[:, 1]))
+    m, d = matches[order], dist[order]
+    first = np.ones(len(m), bool)
+    first[1:] = m[1:, 1] != m[:-1, 1]
+    keep = np.sort(order[first])
+    return matches[keep], dist[keep]
+
+
+def ransac_homography(pts0: NDArray, pts1: NDArray, thresh_px: float, seed: int = 0,
+                      max_iters: int = 10000, confidence: float = 0.999,
+                      ) -> tuple[NDArray[np.float64] | None, NDArray[np.bool_]]:
+    """H_1_from_0 and its inlier mask by RANSAC with Levenberg-Marquardt refinement (seeded).
+
+    OpenCV's classic RANSAC, not USAC-MAGSAC++: on graf 1-3 with 1000 fine matches MAGSAC's
+    model at 1.5 px kept 532 inliers of which 94 % were correct, RANSAC kept 709 with 99.9 %.
+    The seed is applied to OpenCV's per-thread RNG just before the call, so results do not
+    depend on which thread runs the pair. Returns (None, all False) below 4 correspondences.
+    """
+    n = len(pts0)
+    if n < 4:
+        return None, np.zeros(n, bool)
+    cv2.setRNGSeed(seed)
+    H, mask = cv2.findHomography(np.asarray(pts0, np.float32), np.asarray(pts1, np.float32),
+                                 cv2.RANSAC, thresh_px, maxIters=max_iters, confidence=confidence)
+    if H is None or mask is None or not np.isfinite(H).all():
+        return None, np.zeros(n, bool)
+    return H / H[2, 2], mask.ravel().astype(bool)
