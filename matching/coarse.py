@@ -58,6 +58,21 @@ def original_features(store: FeatureStore, name: str, det: DetectorConfig) -> Fe
     return store.get_or_compute(name, f"{det.key}@orig", lambda: detect(store.image(name), det))
 
 
+def away_from_canvas_edge(kpts_view: np.ndarray, sizes: np.ndarray, mask: np.ndarray,
+                          size_factor: float = 0.5) -> np.ndarray:
+    """Keypoints (in view pixels) whose support region stays inside the warped image.
+
+    The warped original sits on a black canvas; its edge is a strong artificial contrast that
+    SIFT and ORB fire on at every scale, producing keypoints that match other views' edges.
+    A keypoint is kept when its distance to the canvas is over `size_factor` x its size
+    (its support diameter in px); `kpts_view` are view pixels.
+    """
+    dist = cv2.distanceTransform((mask > 0).astype(np.uint8), cv2.DIST_L2, 3)
+    h, w = mask.shape
+    xy = np.clip(np.rint(kpts_view).astype(np.int64), 0, [w - 1, h - 1])
+    return dist[xy[:, 1], xy[:, 0]] > np.maximum(3.0, size_factor * sizes)
+
+
 def view_features(store: FeatureStore, name: str, view: ViewParams, det: DetectorConfig,
                   interp: Interp, antialias: bool) -> Features:
     """Features of one simulated view, keypoints mapped back to the original image frame.
@@ -72,9 +87,10 @@ def view_features(store: FeatureStore, name: str, view: ViewParams, det: Detecto
         img = store.image(name)
         sv = simulate(img, view, interp, antialias)
         f = detect(sv.image, det, sv.mask)
+        keep = away_from_canvas_edge(f.kpts, f.sizes, sv.mask)
         kpts, inside = map_to_original(f.kpts, sv.A_view_from_orig, (img.shape[1], img.shape[0]))
         f.kpts = kpts
-        return f.subset(inside)
+        return f.subset(inside & keep)
 
     return store.get_or_compute(name, key, compute)
 

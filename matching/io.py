@@ -1,7 +1,7 @@
 """Reading images and homographies from disk, with one-line errors for bad input.
 
 Every image becomes an 8-bit single-channel array: grayscale, RGB(A) and 16-bit inputs are all
-accepted (16-bit is rescaled by its own range, alpha is dropped), because SIFT and ORB in OpenCV
+accepted (16-bit is rescaled by its bit depth, alpha is dropped), because SIFT and ORB in OpenCV
 work on 8-bit gray. Images are read with `cv2.imdecode` from bytes so that paths with spaces and
 non-ASCII characters work on every platform.
 """
@@ -47,11 +47,22 @@ def to_gray_u8(img: NDArray) -> NDArray[np.uint8]:
         else:
             img = img[:, :, 0]
     if img.dtype != np.uint8:
-        f = img.astype(np.float32)
-        lo, hi = float(f.min()), float(f.max())
-        f = (f - lo) * (255.0 / (hi - lo)) if hi > lo else np.zeros_like(f)
-        img = np.clip(f + 0.5, 0, 255).astype(np.uint8)
+        img = _to_u8(img)
     return np.ascontiguousarray(img)
+
+
+def _to_u8(img: NDArray) -> NDArray[np.uint8]:
+    """Integer images scale by their container's effective bit depth (the smallest 2^k - 1
+    that holds the maximum: 16-bit data / 257, 12-bit data / 16.06), so an 8-bit image stored
+    as 16-bit comes back exactly; float images scale by their own range."""
+    f = img.astype(np.float32)
+    if np.issubdtype(img.dtype, np.integer):
+        top = float(max(int(img.max()), 255))
+        full = float(2 ** int(np.ceil(np.log2(top + 1))) - 1)
+        return np.clip(f * (255.0 / full) + 0.5, 0, 255).astype(np.uint8)
+    lo, hi = float(np.nanmin(f)), float(np.nanmax(f))
+    f = (f - lo) * (255.0 / (hi - lo)) if hi > lo else np.zeros_like(f)
+    return np.clip(np.nan_to_num(f) + 0.5, 0, 255).astype(np.uint8)
 
 
 def to_bgr_u8(img: NDArray) -> NDArray[np.uint8]:
@@ -59,9 +70,7 @@ def to_bgr_u8(img: NDArray) -> NDArray[np.uint8]:
     if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
         return cv2.cvtColor(to_gray_u8(img), cv2.COLOR_GRAY2BGR)
     if img.dtype != np.uint8:
-        f = img.astype(np.float32)
-        lo, hi = float(f.min()), float(f.max())
-        img = np.clip((f - lo) * (255.0 / max(hi - lo, 1e-9)) + 0.5, 0, 255).astype(np.uint8)
+        img = _to_u8(img)
     if img.shape[2] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
     return np.ascontiguousarray(img)

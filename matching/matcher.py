@@ -40,6 +40,8 @@ class MatcherConfig:
     keypoints within `guided_px` of their predicted position (more matches at equal precision).
     `fine_top_k`: how many of the best coarse views the fine stage fuses (paper: 1). Two
     views gave 12-38 % more correct matches on graf 1-2..1-6 at equal precision.
+    `min_result_inliers`: a final result with fewer verified matches than this is returned
+    empty, with the reason (random matches between unrelated images reach ~4-8).
     `workers`: threads for independent views (0 = all cores, 1 = none, for callers that already
     run pairs in parallel).
     """
@@ -56,6 +58,7 @@ class MatcherConfig:
     guided_px: float = 4.0
     guided_ratio: float = 0.8
     verify: Literal["auto", "homography", "fundamental"] = "auto"
+    min_result_inliers: int = 10
     workers: int = 0
     seed: int = 0
 
@@ -186,8 +189,14 @@ class ExtraAffineMatcher:
         timings["ransac"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_start
         result.timings = timings
-        if result.num_matches == 0 and not result.reason:
-            result.reason = "no matches survived the ratio test"
+        if result.num_inliers < cfg.min_result_inliers:
+            why = result.reason or (f"only {result.num_inliers} verified matches (< {cfg.min_result_inliers}): "
+                                    "the images probably do not overlap")
+            empty = PairResult.empty(self.name, why, reference=result.reference,
+                                     reference_reason=result.reference_reason, f0=result.f0, f1=result.f1,
+                                     best_views=result.best_views, coarse_scores=result.coarse_scores,
+                                     escalation=result.escalation, timings=timings, image_sizes=result.image_sizes)
+            return empty
         return result
 
     def _guided(self, store: FeatureStore, names: tuple[str, str], att: Attempt, res: PairResult) -> PairResult:

@@ -1,0 +1,39 @@
+# The two commands of the README:  `make demo`  and  `make test`.
+# Each creates the virtual environment .venv/ at the repository root when it is missing and
+# installs the project from its own files (pyproject.toml), plus the one system library that
+# open3d needs to import (libusb-1.0-0, Debian package) when the machine lacks it.
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DEMO   := out/demo
+
+.PHONY: setup demo test test-fast bench-pairs clean
+
+$(STAMP): pyproject.toml
+	@./.ci/system-deps.sh
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+setup: $(STAMP)
+
+## Render the default extreme-viewpoint scene and reconstruct it with the extra-affine matcher.
+demo: $(STAMP)
+	$(BIN)/recon render-scene $(DEMO)/scene --preset corner --seed 0 --overwrite
+	$(BIN)/recon run $(DEMO)/scene --out $(DEMO)/recon --overwrite
+
+## All tests (real data from ../shared/data where present, skipped with a reason otherwise).
+test: $(STAMP)
+	$(BIN)/python -m pytest -p no:dash -q
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -p no:dash -q -m "not slow"
+
+bench-pairs: $(STAMP)
+	$(BIN)/recon bench pairs ../shared/data --json benchmarks/results/pairs.json
+
+clean:
+	rm -rf $(VENV) out *.egg-info

@@ -1,0 +1,116 @@
+"""`recon match IMG_A IMG_B`: match one pair and explain the matcher's decisions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from matching.errors import InputError
+from matching.io import load_color, load_gray, read_homography
+from matching.metrics import DEFAULT_TH, gt_reference, precision
+from matching.registry import METHODS, get_matcher
+from matching.store import FeatureStore
+from matching.types import PairResult
+
+console = Console(stderr=False, highlight=False)
+
+
+def summarize(result: PairResult, names: tuple[str, str], gt=None, th: float = DEFAULT_TH) -> dict:
+    """JSON-ready summary of a pair result (and its precision against a GT homography)."""
+    out: dict = {
+        "image0": names[0], "image1": names[1], "method": result.method,
+        "matches": result.num_matches, "inliers": result.num_inliers,
+        "reference": None if result.reference is None else names[result.reference],
+        "reference_index": result.reference, "reference_reason": result.reference_reason,
+        "f0": result.f0, "f1": result.f1,
+        "best_views": [{"t": v.t, "phi": v.phi, "s": v.s} for v in result.best_views],
+        "coarse_scores": [{"t": c.view.t, "phi": c.view.phi, "s": c.view.s, "matches": c.matches,
+                           "inliers": c.inliers, "score": c.score} for c in result.coarse_scores],
+        "escalation": result.escalation, "reason": result.reason, "timings_s": result.timings,
+        "H_1_from_0": None if result.H_1_from_0 is None else result.H_1_from_0.tolist(),
+    }
+    p0, p1 = result.matched_points(inliers_only=True)
+    out["points0"] = p0.tolist()
+    out["points1"] = p1.tolist()
+    if gt is not None and result.image_sizes is not None:
+        rep = precision(result, gt, th)
+        ref_gt = gt_reference(gt, result.image_sizes[0])
+        out.update(points=rep.points, correct=rep.correct, precision=rep.precision, th=th,
+                   gt_reference=ref_gt,
+                   ref_correct=None if ref_gt is None or result.reference is None else ref_gt == result.reference)
+    return out
+
+
+def _print(summary: dict, result: PairResult) -> None:
+    t = Table(show_header=False, box=None, pad_edge=False)
+    t.add_column(style="bold")
+    t.add_column()
+    t.add_row("method", summary["method"])
+    if result.reference is not None:
+        t.add_row("reference", f"{summary['reference']}  ({summary['reference_reason']})")
+        if result.f0 is not None:
+            t.add_row("Eq. 1 f0 / f1", f"{result.f0:.1f} / {result.f1:.1f}")
+    if result.best_views:
+        t.add_row("best (t, phi, s)", ", ".join(f"({v.t:.2f}, {v.phi:.1f}°, {v.s:.2f})" for v in result.best_views))
+    if result.escalation:
+        t.add_row("escalation", result.escalation)
+    t.add_row("matches / inliers", f"{summary['matches']} / {summary['inliers']}")
+    if "precision" in summary:
+        ok = {True: "agrees with GT", False: "DISAGREES with GT", None: "GT scales within 10 %"}[summary["ref_correct"]]
+        t.add_row("precision", f"{summary['precision'] * 100:.2f} %  ({summary['correct']} of {summary['points']} "
+                               f"within {summary['th']:.3g} px); reference {ok}")
+    t.add_row("time", "  ".join(f"{k} {v:.2f}s" for k, v in result.timings.items() if k != "guided_rejected"))
+    if result.reason:
+        t.add_row("note", result.reason)
+    console.print(t)
+
+
+def match_command(
+    img_a: Path = typer.Argument(..., help="First image (image 0)."),
+    img_b: Path = typer.Argument(..., help="Second image (image 1)."),
+    method: str = typer.Option("extra-affine", "--method", "-m", help=f"One of: {', '.join(METHODS)}."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth homography file (image 0 -> image 1)."),
+    save_vis: Optional[Path] = typer.Option(None, "--save-vis", help="Write the matches drawn side by side (PNG/JPG)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result summary and matched points as JSON."),
+    th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
+    variant: str = typer.Option("default", "--variant", help="extra-affine only: 'default' or 'paper' (plain reading)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of every RANSAC (results are deterministic per seed)."),
+) -> None:
+    """Match two images and report the reference choice, best view, matches and timings."""
+    from recon.cli import UserError
+    from recon.jsonio import write_json_atomic
+    from recon.vis import draw_matches, write_image_atomic
+
+    if method not in METHODS:
+        raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if variant not in ("default", "paper"):
+        raise UserError(f"unknown variant {variant!r}; choose 'default' or 'paper'")
+    H_gt = read_homography(gt) if gt is not None else None
+    gray = [load_gray(img_a), load_gray(img_b)]
+    store = FeatureStore()
+    names = (str(img_a), str(img_b))
+    store.add_image(names[0], gray[0])
+    store.add_image(names[1], gray[1])
+    overrides: dict = {"seed": seed}
+    if method == "extra-affine" and variant == "paper":
+        overrides["variant"] = "paper"
+    matcher = get_matcher(method, **overrides)
+    result = matcher.match(store, names[0], names[1])
+    summary = summarize(result, names, H_gt, th)
+    _print(summary, result)
+    if result.num_matches == 0:
+        console.print(f"no match: {result.reason or 'the images share no features'}")
+    if save_vis is not None:
+        write_image_atomic(save_vis, draw_matches(load_color(img_a), load_color(img_b), result))
+        console.print(f"wrote {save_vis}")
+    if json_out is not None:
+        write_json_atomic(json_out, summary)
+        console.print(f"wrote {json_out}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("match")(match_command)

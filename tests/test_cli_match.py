@@ -1,0 +1,135 @@
+"""`recon match` on good and bad input: one-line errors, non-zero exits, never a traceback."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from recon.cli import main
+
+
+@pytest.fixture()
+def graf_small(shared_data, tmp_path):
+    """graf img1 and img3 at half size (PNG) and the homography adjusted to that size."""
+    H = np.loadtxt(shared_data / "oxford" / "graf" / "H1to3p")
+    S = np.diag([0.5, 0.5, 1.0])
+    S[:2, 2] = -0.25  # pixel centres: x_half = (x + 0.5) / 2 - 0.5
+    H_half = S @ H @ np.linalg.inv(S)
+    paths = []
+    for k in (1, 3):
+        img = cv2.imread(str(shared_data / "oxford" / "graf" / f"img{k}.png"))
+        small = cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+        p = tmp_path / f"img {k} ü.png"  # spaces and non-ASCII in paths
+        cv2.imencode(".png", small)[1].tofile(str(p))
+        paths.append(p)
+    hp = tmp_path / "H1to3"
+    np.savetxt(hp, H_half / H_half[2, 2])
+    return paths[0], paths[1], hp
+
+
+def _one_line_error(capsys, *needles):
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err
+    assert len(err.splitlines()) == 1, err
+    for n in needles:
+        assert n in err
+    return err
+
+
+def test_match_reports_precision_and_writes_outputs(graf_small, tmp_path, capsys):
+    a, b, h = graf_small
+    vis, js = tmp_path / "vis.png", tmp_path / "out.json"
+    rc = main(["match", str(a), str(b), "--gt", str(h), "--save-vis", str(vis), "--json", str(js)])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "precision" in out and "reference" in out
+    data = json.loads(js.read_text())
+    assert data["precision"] >= 0.9 and data["points"] >= 100
+    assert len(data["coarse_scores"]) == 45
+    assert data["reference_index"] == 0
+    vis_img = cv2.imdecode(np.fromfile(str(vis), np.uint8), cv2.IMREAD_COLOR)
+    assert vis_img.shape[1] == 2 * cv2.imdecode(np.fromfile(str(a), np.uint8), cv2.IMREAD_COLOR).shape[1]
+
+
+@pytest.mark.parametrize("method", ["sift", "asift"])
+def test_baseline_methods_through_the_same_command(graf_small, method, capsys):
+    a, b, h = graf_small
+    assert main(["match", str(a), str(b), "--method", method, "--gt", str(h)]) == 0
+    assert method in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("kind", ["gray", "rgba", "u16"])
+def test_gray_rgba_and_16bit_images_are_accepted(graf_small, tmp_path, kind, capsys):
+    a, b, h = graf_small
+    img = cv2.imdecode(np.fromfile(str(a), np.uint8), cv2.IMREAD_COLOR)
+    conv = {"gray": cv2.cvtColor(img, cv2.COLOR_BGR2GRAY),
+            "rgba": cv2.cvtColor(img, cv2.COLOR_BGR2BGRA),
+            "u16": img.astype(np.uint16) * 257}[kind]
+    p = tmp_path / f"a_{kind}.png"
+    cv2.imwrite(str(p), conv)
+    js = tmp_path / "o.json"
+    assert main(["match", str(p), str(b), "--gt", str(h), "--json", str(js)]) == 0
+    assert json.loads(js.read_text())["precision"] >= 0.9
+
+
+def test_missing_file(graf_small, tmp_path, capsys):
+    a, _, _ = graf_small
+    assert main(["match", str(a), str(tmp_path / "nope.png")]) == 2
+    _one_line_error(capsys, "nope.png", "no such file")
+
+
+def test_non_image_file(graf_small, tmp_path, capsys):
+    a, _, _ = graf_small
+    bad = tmp_path / "notes.png"
+    bad.write_text("this is not an image")
+    assert main(["match", str(a), str(bad)]) == 2
+    _one_line_error(capsys, "notes.png", "not a readable image")
+
+
+def test_unreadable_file(graf_small, tmp_path, capsys):
+    import os
+    a, b, _ = graf_small
+    locked = tmp_path / "locked.png"
+    locked.write_bytes(b.read_bytes())
+    locked.chmod(0)
+    if os.access(locked, os.R_OK):  # root reads anything: make it unreadable another way
+        locked.chmod(0o644)
+        locked.unlink()
+        locked.mkdir()
+    assert main(["match", str(a), str(locked)]) == 2
+    _one_line_error(capsys, "locked.png")
+
+
+def test_tiny_image(graf_small, tmp_path, capsys):
+    a, _, _ = graf_small
+    tiny = tmp_path / "tiny.png"
+    cv2.imwrite(str(tiny), np.zeros((20, 40), np.uint8))
+    assert main(["match", str(a), str(tiny)]) == 2
+    _one_line_error(capsys, "tiny.png", "32 px")
+
+
+@pytest.mark.parametrize("content", ["1 2 3\n4 5 6\n", "a b c d e f g h i", "0 0 0 0 0 0 0 0 0"])
+def test_malformed_homography(graf_small, tmp_path, capsys, content):
+    a, b, _ = graf_small
+    hp = tmp_path / "H_bad"
+    hp.write_text(content)
+    assert main(["match", str(a), str(b), "--gt", str(hp)]) == 2
+    _one_line_error(capsys, "H_bad")
+
+
+def test_unknown_method(graf_small, capsys):
+    a, b, _ = graf_small
+    assert main(["match", str(a), str(b), "--method", "surf"]) == 2
+    _one_line_error(capsys, "surf", "extra-affine")
+
+
+def test_pair_that_does_not_match_exits_zero_with_reason(graf_small, tmp_path, capsys):
+    a, _, _ = graf_small
+    flat = tmp_path / "flat.png"
+    cv2.imwrite(str(flat), np.full((200, 300), 128, np.uint8))
+    assert main(["match", str(a), str(flat)]) == 0
+    out = capsys.readouterr().out
+    assert "no match" in out

@@ -1,0 +1,81 @@
+"""The simulation grid, the view affines and the mapping of keypoints back to the original."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from matching.types import ViewParams
+from matching.views import (GridConfig, antialias_sigma, apply_affine, map_to_original, simulate,
+                            view_affine, view_grid)
+
+
+def test_default_grid_has_the_papers_45_views_per_tilt():
+    views = view_grid(GridConfig())
+    per_tilt = Counter(round(v.t, 3) for v in views)
+    assert [per_tilt[round(math.sqrt(2) ** k, 3)] for k in range(6)] == [3, 4, 5, 8, 10, 15]
+    assert len(views) == 45
+    # longitudes step by 72/t and stay below 180 degrees
+    for v in views:
+        assert 0 <= v.phi < 180
+        j = v.phi / (72.0 / v.t)
+        assert abs(j - round(j)) < 1e-6
+
+
+def test_grid_scale_is_tied_to_tilt_index_and_configurable():
+    tied = view_grid(GridConfig(scale_mode="tied", ds=0.5))
+    assert sorted({v.s for v in tied}) == [1.0, 1.5, 2.0, 2.5, 3.0, 3.5]
+    assert {v.s for v in view_grid(GridConfig(ds=0.0))} == {1.0}
+    assert {v.s for v in view_grid(GridConfig(scale_mode="none"))} == {1.0}
+    wider = view_grid(GridConfig(b=36.0))
+    assert len(wider) > 45  # a finer longitude step gives more views
+    assert len(view_grid(GridConfig(n=2))) == 3 + 4 + 5
+
+
+@pytest.mark.parametrize("view", [ViewParams(1.0, 0.0, 1.0), ViewParams(2.0, 30.0, 1.5),
+                                  ViewParams(5.656854, 171.0, 3.5), ViewParams(1.414214, 90.0, 0.5)])
+def test_affine_round_trip_and_canvas_holds_whole_image(view):
+    w, h = 320, 200
+    A, (ow, oh) = view_affine((w, h), view)
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], np.float64)
+    warped = apply_affine(A, corners)
+    assert warped.min() >= -1e-4
+    assert warped[:, 0].max() <= ow - 1 + 1e-4 and warped[:, 1].max() <= oh - 1 + 1e-4
+    pts = np.random.default_rng(0).uniform([0, 0], [w - 1, h - 1], (50, 2))
+    back, inside = map_to_original(apply_affine(A, pts), A, (w, h))
+    assert inside.all()
+    np.testing.assert_allclose(back, pts, atol=1e-3)
+
+
+def test_simulated_view_puts_original_pixels_where_the_affine_says():
+    img = np.zeros((120, 160), np.uint8)
+    img[40, 100] = 255  # one bright pixel at (x=100, y=40)
+    view = ViewParams(2.0, 40.0, 2.0)  # t/s = 1: no anti-alias blur
+    sv = simulate(img, view, "nearest")
+    x, y = apply_affine(sv.A_view_from_orig, [[100.0, 40.0]])[0]
+    ys, xs = np.nonzero(sv.image)
+    assert len(xs) > 0
+    assert np.hypot(xs.mean() - x, ys.mean() - y) < 1.5
+    assert sv.mask[int(round(y)), int(round(x))] == 255
+    assert sv.mask[0, 0] == 0  # rotated canvas corner lies outside the original
+
+
+def test_points_outside_the_original_are_dropped():
+    w, h = 100, 80
+    A, _ = view_affine((w, h), ViewParams(2.0, 45.0, 1.0))
+    view_pts = np.array([[0.0, 0.0], apply_affine(A, [[50.0, 40.0]])[0]])
+    _, inside = map_to_original(view_pts, A, (w, h))
+    assert inside.tolist() == [False, True]
+
+
+def test_antialias_blur_only_where_the_view_shrinks():
+    assert antialias_sigma(ViewParams(4.0, 0.0, 1.0)) == pytest.approx(0.8 * math.sqrt(15))
+    assert antialias_sigma(ViewParams(2.0, 0.0, 2.0)) == 0.0
+    img = (np.random.default_rng(1).random((100, 100)) * 255).astype(np.uint8)
+    sharp = simulate(img, ViewParams(4.0, 0.0, 1.0), "linear", antialias=False).image
+    soft = simulate(img, ViewParams(4.0, 0.0, 1.0), "linear", antialias=True).image
+    assert sharp.shape == soft.shape
+    assert soft[10:-10, 5:-5].std() < sharp[10:-10, 5:-5].std()  # blur removes aliased noise
