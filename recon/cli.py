@@ -39,7 +39,11 @@ def _register_commands() -> None:
 def main(argv: list[str] | None = None) -> int:
     _register_commands()
     try:
-        app(args=argv, standalone_mode=False)
+        # with standalone_mode=False click returns the code of `typer.Exit(n)` (and of an
+        # interrupted prompt) instead of raising it
+        rv = app(args=argv, standalone_mode=False)
+        if isinstance(rv, int) and not isinstance(rv, bool):
+            return rv
     except (InputError, UserError) as e:
         print(f"recon: error: {e}", file=sys.stderr)
         return 2
@@ -63,5 +67,3 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())

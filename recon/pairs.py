@@ -1,0 +1,124 @@
+"""Which image pairs to match: `exhaustive`, `sequential:K`, or a file of name pairs.
+
+* `exhaustive` (default): every unordered pair, (i, j) with i < j in name order.
+* `sequential:K`: each image with the next K images in name order (video or walk-around
+  captures, where only neighbours overlap).
+* anything else is a path to a text file with one pair per line: two image names separated by
+  whitespace. Names containing spaces can be quoted ("my photo.jpg" other.jpg); `#` starts a
+  comment; blank lines are ignored. Pairs naming an image that is not in the scene (or was skipped
+  as corrupt or duplicate) are dropped with one warning, as are self-pairs and repeats ((a, b)
+  after (a, b) or (b, a)).
+
+Pairs come out in a deterministic order (the generator's order, or the file's), and the
+pipeline writes results in that order whatever order the matching finished in.
+"""
+
+from __future__ import annotations
+
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+
+from matching.errors import InputError
+
+Pair = tuple[str, str]
+
+
+@dataclass(frozen=True)
+class PairsSpec:
+    kind: str  # "exhaustive" | "sequential" | "file"
+    k: int = 0  # sequential window
+    path: Path | None = None  # file of pairs
+
+    def __str__(self) -> str:
+        if self.kind == "sequential":
+            return f"sequential:{self.k}"
+        if self.kind == "file":
+            return str(self.path)
+        return self.kind
+
+
+def parse_pairs_spec(spec: str) -> PairsSpec:
+    """Parse `--pairs`; raises ValueError with a one-line message when it is malformed."""
+    s = (spec or "").strip()
+    if s == "exhaustive":
+        return PairsSpec("exhaustive")
+    if s.startswith("sequential"):
+        _, sep, k = s.partition(":")
+        try:
+            kk = int(k) if sep else 0
+        except ValueError:
+            kk = 0
+        if kk < 1:
+            raise ValueError(f"--pairs {spec!r}: expected sequential:K with an integer K >= 1")
+        return PairsSpec("sequential", k=kk)
+    if not s:
+        raise ValueError("--pairs is empty: use exhaustive, sequential:K or a pairs file")
+    p = Path(s).expanduser()
+    if not p.is_file():
+        raise ValueError(f"--pairs {spec!r}: not 'exhaustive', 'sequential:K' or an existing pairs file")
+    return PairsSpec("file", path=p)
+
+
+def exhaustive_pairs(names: list[str]) -> list[Pair]:
+    return [(names[i], names[j]) for i in range(len(names)) for j in range(i + 1, len(names))]
+
+
+def sequential_pairs(names: list[str], k: int) -> list[Pair]:
+    return [(names[i], names[j]) for i in range(len(names)) for j in range(i + 1, min(len(names), i + 1 + k))]
+
+
+def read_pairs_file(path: Path) -> list[Pair]:
+    """The (name0, name1) rows of a pairs file; InputError naming the file and line when malformed."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read pairs file ({getattr(e, 'strerror', None) or e})") from None
+    out: list[Pair] = []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        try:
+            parts = shlex.split(line, comments=True)
+        except ValueError as e:
+            raise InputError(f"{path}:{lineno}: malformed pairs line ({e})") from None
+        if not parts:
+            continue
+        if len(parts) < 2:
+            raise InputError(f"{path}:{lineno}: expected two image names, got {line.strip()!r}")
+        out.append((parts[0], parts[1]))  # extra columns (scores from retrieval) are ignored
+    return out
+
+
+def make_pairs(spec: PairsSpec, names: list[str]) -> tuple[list[Pair], list[str]]:
+    """(pairs, warnings) for the scene's usable image names (in name order)."""
+    if spec.kind == "exhaustive":
+        return exhaustive_pairs(names), []
+    if spec.kind == "sequential":
+        return sequential_pairs(names, spec.k), []
+    assert spec.path is not None
+    raw = read_pairs_file(spec.path)
+    known = set(names)
+    seen: set[frozenset[str]] = set()
+    out: list[Pair] = []
+    unknown: list[str] = []
+    dropped_self = dropped_dup = 0
+    for a, b in raw:
+        if a not in known or b not in known:
+            unknown.extend(n for n in (a, b) if n not in known)
+            continue
+        if a == b:
+            dropped_self += 1
+            continue
+        key = frozenset((a, b))
+        if key in seen:
+            dropped_dup += 1
+            continue
+        seen.add(key)
+        out.append((a, b))
+    warnings = []
+    if unknown:
+        u = sorted(set(unknown))
+        shown = ", ".join(u[:5]) + (f" and {len(u) - 5} more" if len(u) > 5 else "")
+        warnings.append(f"{spec.path}: dropped pairs naming images not in the scene (or skipped): {shown}")
+    if dropped_self or dropped_dup:
+        warnings.append(f"{spec.path}: dropped {dropped_self} self-pair(s) and {dropped_dup} repeated pair(s)")
+    return out, warnings

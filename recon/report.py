@@ -1,0 +1,131 @@
+"""The run report (`OUT/report.json`) and the console summary table.
+
+`report.json` keys (all always present):
+
+* `status`: "ok", or "no_model" when SfM registered nothing (then `message` says why);
+* `num_images` (usable images), `registered_images`, `num_points3D`, `mean_track_length` and
+  `mean_reprojection_error` (px) of the kept (largest) model, `num_models`, `model_sizes`;
+* `tracks`: track lengths of the *verified* match graph before SfM, with keypoint merging
+  (`merged`) and without (`unmerged`: every pair keeps its own keypoints, so every track has
+  length exactly 2). `mean_track_length` above is the model's (after SfM with merging). A
+  reconstruction without merging can be measured with `--merge-px 0` (see `recon.tracks`);
+* `seconds_total`, `peak_mb` (peak resident memory of the process), `stages` (seconds per stage);
+* `pairs`: one row per pair in pair order: `image0`, `image1`, `reference` (name of the image
+  the matcher simulated, or null), `best_view` ({t, phi, s} or null), `raw_matches` (matcher
+  output), `merged_matches` (after keypoint merging), `verified_inliers` (COLMAP's two-view
+  geometry), `config` (COLMAP's two-view model), `cached` (loaded from the pair cache), `reason`;
+* `skipped`: [{name, reason}] for unreadable, corrupt, duplicate or un-importable images;
+* `warnings`, `config` (the RunConfig), `camera_mode_used`, `pairs_computed`, `pairs_cached`,
+  `features_computed` / `features_reused` (FeatureStore entries: each image's features are
+  computed once per run and shared by all its pairs), `database_reused`, `model_reused`,
+  `merge` (keypoint merging counts), `sfm_options`, `scene`, `out`.
+
+Files are written to a temporary name and `os.replace`d, so a kill never leaves half a report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+@dataclass
+class PairRow:
+    image0: str
+    image1: str
+    reference: str | None = None
+    best_view: dict[str, float] | None = None
+    raw_matches: int = 0
+    merged_matches: int = 0
+    verified_inliers: int = 0
+    config: str = ""
+    cached: bool = False
+    seconds: float = 0.0
+    reason: str = ""
+
+
+@dataclass
+class RunReport:
+    scene: str
+    out: str
+    status: str = "ok"
+    message: str = ""
+    num_images: int = 0
+    registered_images: int = 0
+    num_points3D: int = 0
+    mean_track_length: float = 0.0
+    mean_reprojection_error: float | None = None
+    num_models: int = 0
+    model_sizes: list[int] = field(default_factory=list)
+    registered: list[str] = field(default_factory=list)
+    tracks: dict[str, Any] = field(default_factory=dict)
+    merge: dict[str, Any] = field(default_factory=dict)
+    seconds_total: float = 0.0
+    peak_mb: float = 0.0
+    stages: dict[str, float] = field(default_factory=dict)
+    pairs_computed: int = 0
+    pairs_cached: int = 0
+    features_computed: int = 0  # FeatureStore entries computed this run (one per image and kind)
+    features_reused: int = 0  # entries served from memory or the disk cache
+    camera_mode_used: str = ""
+    database_reused: bool = False
+    model_reused: bool = False
+    num_points_ply: int = 0
+    sfm_options: dict[str, Any] = field(default_factory=dict)
+    pairs: list[PairRow] = field(default_factory=list)
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    config: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def write_json_atomic(path: str | Path, data: Any) -> None:
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=1, ensure_ascii=False, default=str)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def write_report(report: RunReport, path: str | Path) -> None:
+    write_json_atomic(path, report.to_dict())
+
+
+def summary_table(report: RunReport):
+    """A rich Table with the headline numbers and seconds per stage."""
+    from rich.table import Table
+
+    t = Table(title=f"recon run: {Path(report.scene).name}", show_header=True, header_style="bold")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    t.add_row("status", report.status if report.ok else f"[red]{report.status}[/red]")
+    t.add_row("images (usable / skipped)", f"{report.num_images} / {len(report.skipped)}")
+    t.add_row("registered images", f"{report.registered_images} / {report.num_images}")
+    t.add_row("3D points", str(report.num_points3D))
+    t.add_row("mean track length (model)", f"{report.mean_track_length:.2f}")
+    merged = report.tracks.get("merged", {})
+    if merged:
+        t.add_row("mean track length (graph, merged / unmerged)",
+                  f"{merged.get('mean_length', 0.0):.2f} / {report.tracks.get('unmerged', {}).get('mean_length', 0.0):.2f}")
+    err = report.mean_reprojection_error
+    t.add_row("mean reprojection error (px)", "-" if err is None else f"{err:.3f}")
+    t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")
+    verified = sum(1 for p in report.pairs if p.verified_inliers > 0)
+    t.add_row("pairs verified", f"{verified} / {len(report.pairs)}")
+    for k, v in report.stages.items():
+        t.add_row(f"  {k} (s)", f"{v:.1f}")
+    t.add_row("total (s)", f"{report.seconds_total:.1f}")
+    t.add_row("peak memory (MB)", f"{report.peak_mb:.0f}")
+    t.add_row("output", report.out)
+    return t

@@ -1,0 +1,180 @@
+"""Incremental SfM with pycolmap, tuned for few, wide-baseline views; model and point cloud output.
+
+pycolmap 4 API used here (checked against 4.2.1): `pycolmap.incremental_mapping(database_path,
+image_path, output_path, options: IncrementalPipelineOptions, ..., next_image_callback=...)`
+returns `{model index: Reconstruction}` and also writes each model to `output_path/<index>/`;
+the mapper's own options live in `IncrementalPipelineOptions.mapper` (IncrementalMapperOptions:
+`init_min_tri_angle`, `abs_pose_min_num_inliers`, ...) and the triangulator's in
+`.triangulation` (IncrementalTriangulatorOptions). `Reconstruction.write(dir)` writes the
+binary model; `compute_mean_track_length()`, `compute_mean_reprojection_error()`,
+`num_reg_images()`, `num_points3D()` summarise it.
+
+Why these options (COLMAP's defaults assume many images with small baselines):
+
+* `mapper.init_min_tri_angle` 16 -> 4 deg and `init_min_num_inliers` 100 -> 50: with a handful
+  of photos taken far apart, the default initial-pair test rejects every pair that is not both
+  very wide and very well matched; a lower angle still gives a stable initial pair because the
+  verified matches of a wide-baseline pair are few but clean.
+* `mapper.abs_pose_min_num_inliers` 30 -> 15, `abs_pose_min_inlier_ratio` 0.25 -> 0.15: a new
+  view far from the others sees fewer of the existing 3D points.
+* `min_num_matches` 15 (pairs with fewer verified matches are ignored) and `min_model_size`
+  10 -> 3: when the view graph splits, later models of 3+ images are kept too (COLMAP always
+  keeps the first model and caps the threshold at 0.8 * #images).
+* `multiple_models` True: when the view graph falls apart the pipeline keeps reconstructing the
+  rest instead of stopping; we keep the largest model (most registered images, then most points).
+* `ba_refine_focal_length` / `ba_refine_extra_params` True, `ba_refine_principal_point` False:
+  EXIF focal lengths are only a prior (and absent photos get 1.2 * max(w, h)), the principal
+  point is not observable from a few views.
+* `triangulation.ignore_two_view_tracks` stays True (COLMAP's default): merged keypoints give
+  real multi-view tracks (see `recon.tracks`), so two-view-only points are not needed.
+* thresholds in pixels (`init_max_error`, `filter_max_reproj_error`, triangulation reprojection
+  errors) are multiplied by `px_scale`, the working-to-full-resolution factor (capped at 3): the
+  matcher localises keypoints to about a pixel *of the working image*, which is `px_scale`
+  full-resolution pixels.
+* `random_seed`: seeds every RANSAC in the mapper; bundle adjustment with several threads can
+  still differ in the last digits (Ceres sums in thread order), so results are reproducible
+  for a fixed seed up to float noise, and bit-exact only with `num_threads=1`.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+
+def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0
+                    ) -> pycolmap.IncrementalPipelineOptions:
+    """IncrementalPipelineOptions for a small wide-baseline scene (see module doc)."""
+    f = float(min(max(px_scale, 1.0), 3.0))
+    o = pycolmap.IncrementalPipelineOptions()
+    o.min_num_matches = 15
+    o.multiple_models = True
+    o.min_model_size = 3  # COLMAP also caps it at 0.8 * #images and always keeps the first model
+    o.extract_colors = True
+    o.num_threads = int(num_threads)
+    o.random_seed = int(seed)
+    o.ba_refine_focal_length = True
+    o.ba_refine_principal_point = False
+    o.ba_refine_extra_params = True
+    m = o.mapper
+    m.init_min_tri_angle = 4.0
+    m.init_min_num_inliers = 50
+    m.init_max_error = 4.0 * f
+    m.abs_pose_min_num_inliers = 15
+    m.abs_pose_min_inlier_ratio = 0.15
+    m.abs_pose_max_error = 12.0 * f
+    m.filter_max_reproj_error = 4.0 * f
+    m.random_seed = int(seed)
+    m.num_threads = int(num_threads)
+    t = o.triangulation
+    t.merge_max_reproj_error = 4.0 * f
+    t.complete_max_reproj_error = 4.0 * f
+    t.random_seed = int(seed)
+    return o
+
+
+def options_summary(o: pycolmap.IncrementalPipelineOptions) -> dict:
+    """The options we change, for the report."""
+    m, t = o.mapper, o.triangulation
+    return dict(min_num_matches=o.min_num_matches, multiple_models=o.multiple_models,
+                min_model_size=o.min_model_size, random_seed=o.random_seed,
+                init_min_tri_angle=m.init_min_tri_angle, init_min_num_inliers=m.init_min_num_inliers,
+                init_max_error=m.init_max_error, abs_pose_min_num_inliers=m.abs_pose_min_num_inliers,
+                abs_pose_min_inlier_ratio=m.abs_pose_min_inlier_ratio, abs_pose_max_error=m.abs_pose_max_error,
+                filter_max_reproj_error=m.filter_max_reproj_error,
+                tri_merge_max_reproj_error=t.merge_max_reproj_error,
+                tri_complete_max_reproj_error=t.complete_max_reproj_error,
+                ba_refine_focal_length=o.ba_refine_focal_length,
+                ba_refine_principal_point=o.ba_refine_principal_point,
+                ba_refine_extra_params=o.ba_refine_extra_params)
+
+
+@dataclass
+class SfmResult:
+    reconstruction: pycolmap.Reconstruction | None
+    num_models: int
+    model_sizes: list[int]  # registered images per model, largest first
+
+
+def run_incremental(db_path: str | Path, image_dir: str | Path, work_dir: str | Path,
+                    options: pycolmap.IncrementalPipelineOptions,
+                    on_init: Callable[[], None] | None = None,
+                    on_image: Callable[[], None] | None = None) -> SfmResult:
+    """Run incremental mapping; return the largest model (or None). `work_dir` is removed after."""
+    work = Path(work_dir)
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    try:
+        models = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(work), options,
+                                              initial_image_pair_callback=on_init,
+                                              next_image_callback=on_image)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    recs = [r for r in models.values() if r.num_reg_images() > 0]
+    recs.sort(key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+    return SfmResult(recs[0] if recs else None, len(recs), [int(r.num_reg_images()) for r in recs])
+
+
+def write_model_atomic(rec: pycolmap.Reconstruction, model_dir: str | Path) -> None:
+    """Write a binary model to `model_dir` (e.g. OUT/sparse/0) via a temporary sibling folder.
+
+    The old model is moved aside before the new one is renamed into place and only then deleted,
+    so at every moment `model_dir` is either absent or a complete model.
+    """
+    model_dir = Path(model_dir)
+    model_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = model_dir.with_name(f".{model_dir.name}.tmp-{os.getpid()}")
+    old = model_dir.with_name(f".{model_dir.name}.old-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    rec.write(str(tmp))
+    if model_dir.exists():
+        os.replace(model_dir, old)
+    os.replace(tmp, model_dir)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def model_stats(rec: pycolmap.Reconstruction | None) -> dict:
+    if rec is None or rec.num_reg_images() == 0:
+        return dict(registered_images=0, num_points3D=0, mean_track_length=0.0,
+                    mean_reprojection_error=None, mean_observations_per_image=0.0)
+    return dict(registered_images=int(rec.num_reg_images()), num_points3D=int(rec.num_points3D()),
+                mean_track_length=float(rec.compute_mean_track_length()) if rec.num_points3D() else 0.0,
+                mean_reprojection_error=float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else None,
+                mean_observations_per_image=float(rec.compute_mean_observations_per_reg_image()))
+
+
+def registered_names(rec: pycolmap.Reconstruction | None) -> list[str]:
+    if rec is None:
+        return []
+    return sorted(rec.image(i).name for i in rec.reg_image_ids())
+
+
+def write_points_ply(rec: pycolmap.Reconstruction, path: str | Path, clean: bool = False) -> int:
+    """points.ply (xyz + colour) with open3d, optionally without statistical outliers; atomic.
+
+    Returns the number of points written.
+    """
+    import open3d as o3d
+
+    path = Path(path)
+    pts = rec.points3D
+    xyz = np.array([p.xyz for p in pts.values()], np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in pts.values()], np.float64).reshape(-1, 3) / 255.0
+    pc = o3d.geometry.PointCloud()
+    pc.points = o3d.utility.Vector3dVector(xyz)
+    pc.colors = o3d.utility.Vector3dVector(rgb)
+    if clean and len(xyz) >= 20:
+        pc, _ = pc.remove_statistical_outlier(nb_neighbors=min(20, len(xyz) - 1), std_ratio=2.0)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.ply")  # open3d picks the format by extension
+    if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+        tmp.unlink(missing_ok=True)
+        raise OSError(f"{path}: open3d could not write the point cloud")
+    os.replace(tmp, path)
+    return int(len(pc.points))

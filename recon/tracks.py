@@ -1,0 +1,273 @@
+"""Turn per-pair matches into per-image keypoints that form multi-view tracks.
+
+A pair matcher returns keypoints *per pair*: the extra-affine matcher finds its keypoints in
+simulated views of one image, mapped back to original pixels, so the "same" corner of image B
+comes out at slightly different sub-pixel positions in pair (A, B) and in pair (B, C), and with
+a different index. Written to COLMAP as they are, every keypoint would be seen in exactly two
+images: every track would have length 2, and incremental SfM could not register a third image
+through 2D-3D correspondences (and the triangulator ignores two-view tracks by default).
+
+`merge_tracks` therefore merges, per image, the keypoints of all its pairs that lie within
+`radius` pixels of each other into one keypoint (the same idea as hloc's `match_dense.py`, which
+quantises dense-matcher keypoints to a grid of `cell_size` px and keeps the most common position
+per cell). We use radius ("leader") clustering instead of a fixed grid, so two observations
+0.1 px apart never fall into different cells just because a cell border passes between them:
+
+1. collect the matched keypoints of every pair the image is in (unmatched ones are useless);
+2. collapse exact repeats (the SIFT baseline detects once per image, so its keypoints are
+   identical across pairs) and count how often each position was seen;
+3. visit positions from the most to the least often seen; each joins the nearest existing
+   cluster leader within `radius`, or becomes a new leader (a grid hash of `radius`-px cells
+   makes the search O(1)); a cluster's diameter is thus at most 2 * radius;
+4. a merged keypoint is the count-weighted mean of its cluster.
+
+Each pair's matches are then rewritten as index pairs into the merged keypoints. Merging can map
+two matches onto the same (i0, i1) (duplicates: dropped) or one merged keypoint onto several
+partners in the other image (many-to-one collisions): we keep a one-to-one subset greedily by
+ascending descriptor distance (hloc's `get_unique_matches` does the same by score).
+
+`radius <= 0` disables merging: every pair gets its own copies of its keypoints, which is what
+the matcher alone gives (all tracks have length 2). `track_stats` measures the track lengths of a
+match graph (connected components over (image, keypoint) nodes), so the report can give the mean
+track length with merging against the unmerged 2.0 without running SfM twice.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass
+class PairMatches:
+    """One pair's matcher output in full-resolution pixels (OpenCV convention)."""
+
+    name0: str
+    name1: str
+    kpts0: NDArray[np.float32]  # (N0, 2)
+    kpts1: NDArray[np.float32]  # (N1, 2)
+    matches: NDArray[np.int64]  # (K, 2) indices into kpts0 / kpts1
+    distances: NDArray[np.float32] | None = None  # (K,) descriptor distances (lower = better)
+
+
+@dataclass
+class MergeStats:
+    num_input_matches: int = 0
+    num_output_matches: int = 0
+    dropped_duplicates: int = 0  # matches that became an already present (i0, i1)
+    dropped_collisions: int = 0  # many-to-one after merging (kept: the lowest distance)
+    num_observations: int = 0  # matched keypoint occurrences over all pairs, before merging
+    num_keypoints: int = 0  # merged keypoints over all images
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class MergedTracks:
+    """Per-image merged keypoints and, per input pair (same order), matches into them."""
+
+    keypoints: dict[str, NDArray[np.float32]]  # (N, 2), full-res OpenCV pixels
+    matches: list[NDArray[np.uint32]]  # (M, 2) per input pair
+    pairs: list[tuple[str, str]]
+    stats: MergeStats = field(default_factory=MergeStats)
+
+
+def _leader_cluster(pts: NDArray[np.float64], counts: NDArray[np.int64], radius: float) -> NDArray[np.int64]:
+    """Cluster id of each point: greedy leader clustering, most-seen points first (deterministic)."""
+    n = len(pts)
+    order = np.lexsort((np.arange(n), -counts))  # by count desc, then by first appearance
+    labels = np.full(n, -1, np.int64)
+    grid: dict[tuple[int, int], list[int]] = {}
+    leaders_xy: list[tuple[float, float]] = []
+    r2 = radius * radius
+    inv = 1.0 / radius
+    cells = np.floor(pts * inv).astype(np.int64)
+    for i in order.tolist():
+        x, y = pts[i]
+        cx, cy = int(cells[i, 0]), int(cells[i, 1])
+        best, best_d = -1, r2
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for lid in grid.get((cx + dx, cy + dy), ()):
+                    lx, ly = leaders_xy[lid]
+                    d = (lx - x) * (lx - x) + (ly - y) * (ly - y)
+                    if d <= best_d:
+                        if d < best_d or best < 0 or lid < best:
+                            best, best_d = lid, d
+        if best < 0:
+            best = len(leaders_xy)
+            leaders_xy.append((float(x), float(y)))
+            grid.setdefault((cx, cy), []).append(best)
+        labels[i] = best
+    return labels
+
+
+def _one_to_one(m: NDArray[np.int64], dist: NDArray[np.float32]) -> tuple[NDArray[np.int64], int, int]:
+    """Unique one-to-one subset of merged matches: (kept, n_duplicates, n_collisions)."""
+    if len(m) == 0:
+        return m.reshape(0, 2), 0, 0
+    order = np.lexsort((np.arange(len(m)), dist))  # best (lowest distance) first, stable
+    used0: set[int] = set()
+    used1: set[int] = set()
+    seen: set[tuple[int, int]] = set()
+    keep = []
+    dup = col = 0
+    for k in order.tolist():
+        a, b = int(m[k, 0]), int(m[k, 1])
+        if (a, b) in seen:
+            dup += 1
+            continue
+        seen.add((a, b))
+        if a in used0 or b in used1:
+            col += 1
+            continue
+        used0.add(a)
+        used1.add(b)
+        keep.append(k)
+    keep.sort()  # keep the matcher's order
+    return m[keep], dup, col
+
+
+def merge_tracks(pairs: Sequence[PairMatches], radius: float | Mapping[str, float]) -> MergedTracks:
+    """Merge the keypoints of all pairs per image (see module doc); `radius` in full-res px,
+    one value or one per image name. `radius <= 0` keeps every pair's keypoints separate."""
+    names: list[str] = []
+    for p in pairs:
+        for n in (p.name0, p.name1):
+            if n not in names:
+                names.append(n)
+
+    def rad(name: str) -> float:
+        return float(radius.get(name, 0.0)) if isinstance(radius, Mapping) else float(radius)
+
+    # observations per image: (pair index, side, keypoint indices used, their coordinates)
+    obs: dict[str, list[tuple[int, int, NDArray[np.int64], NDArray[np.float32]]]] = {n: [] for n in names}
+    stats = MergeStats()
+    for pi, p in enumerate(pairs):
+        m = np.asarray(p.matches, np.int64).reshape(-1, 2)
+        stats.num_input_matches += len(m)
+        for side, (name, kp) in enumerate(((p.name0, p.kpts0), (p.name1, p.kpts1))):
+            used = np.unique(m[:, side]) if len(m) else np.zeros(0, np.int64)
+            obs[name].append((pi, side, used, np.asarray(kp, np.float32).reshape(-1, 2)[used]))
+            stats.num_observations += len(used)
+
+    # per image: merged keypoints, and a lookup (pair, side) -> (kp index -> merged id)
+    keypoints: dict[str, NDArray[np.float32]] = {}
+    lookup: dict[tuple[int, int], tuple[NDArray[np.int64], NDArray[np.int64]]] = {}
+    for name in names:
+        entries = obs[name]
+        if not entries:
+            keypoints[name] = np.zeros((0, 2), np.float32)
+            continue
+        coords = np.concatenate([e[3] for e in entries]).astype(np.float64)
+        r = rad(name)
+        if r <= 0 or len(coords) == 0:
+            ids = np.arange(len(coords), dtype=np.int64)
+            merged = coords
+        else:
+            q = np.round(coords * 1000.0).astype(np.int64)  # exact repeats (to 1e-3 px)
+            _, first, inv, counts = np.unique(q, axis=0, return_index=True, return_inverse=True,
+                                              return_counts=True)
+            inv = inv.reshape(-1)
+            # unique rows in order of first appearance, so ids do not depend on np.unique's sort
+            by_first = np.argsort(first, kind="stable")
+            rank = np.empty_like(by_first)
+            rank[by_first] = np.arange(len(by_first))
+            upts = coords[first[by_first]]
+            ucnt = counts[by_first]
+            lab = _leader_cluster(upts, ucnt, r)
+            nclu = int(lab.max()) + 1 if len(lab) else 0
+            w = ucnt.astype(np.float64)
+            sx = np.bincount(lab, weights=w * upts[:, 0], minlength=nclu)
+            sy = np.bincount(lab, weights=w * upts[:, 1], minlength=nclu)
+            sw = np.bincount(lab, weights=w, minlength=nclu)
+            merged = np.stack([sx / sw, sy / sw], axis=1)
+            ids = lab[rank[inv]]
+        keypoints[name] = merged.astype(np.float32)
+        off = 0
+        for pi, side, used, _ in entries:
+            lookup[(pi, side)] = (used, ids[off:off + len(used)])
+            off += len(used)
+
+    out_matches: list[NDArray[np.uint32]] = []
+    for pi, p in enumerate(pairs):
+        m = np.asarray(p.matches, np.int64).reshape(-1, 2)
+        if len(m) == 0:
+            out_matches.append(np.zeros((0, 2), np.uint32))
+            continue
+        cols = []
+        for side in (0, 1):
+            used, ids = lookup[(pi, side)]
+            cols.append(ids[np.searchsorted(used, m[:, side])])
+        mm = np.stack(cols, axis=1)
+        dist = (np.asarray(p.distances, np.float32).reshape(-1) if p.distances is not None
+                and len(p.distances) == len(m) else np.zeros(len(m), np.float32))
+        kept, dup, col = _one_to_one(mm, dist)
+        stats.dropped_duplicates += dup
+        stats.dropped_collisions += col
+        stats.num_output_matches += len(kept)
+        out_matches.append(np.ascontiguousarray(kept.astype(np.uint32)))
+    stats.num_keypoints = int(sum(len(k) for k in keypoints.values()))
+    return MergedTracks(keypoints, out_matches, [(p.name0, p.name1) for p in pairs], stats)
+
+
+def connected_components(n: int, edges: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Component label of each of n nodes (vectorised hooking + pointer jumping)."""
+    labels = np.arange(n, dtype=np.int64)
+    if n == 0 or len(edges) == 0:
+        return labels
+    a, b = edges[:, 0], edges[:, 1]
+    while True:
+        la, lb = labels[a], labels[b]
+        m = np.minimum(la, lb)
+        new = labels.copy()
+        np.minimum.at(new, la, m)  # hook both roots onto the smaller label
+        np.minimum.at(new, lb, m)
+        np.minimum.at(new, a, m)
+        np.minimum.at(new, b, m)
+        while True:  # pointer jumping to the roots
+            nxt = new[new]
+            if np.array_equal(nxt, new):
+                break
+            new = nxt
+        if np.array_equal(new, labels):
+            return labels
+        labels = new
+
+
+def track_stats(num_keypoints: Mapping[str, int], pairs: Sequence[tuple[str, str]],
+                matches: Sequence[NDArray]) -> dict:
+    """Tracks of a match graph: {num_tracks, mean_length, max_length, inconsistent}.
+
+    A track is a connected component of (image, keypoint) nodes joined by matches; its length is
+    its number of nodes. `inconsistent` counts tracks holding two keypoints of one image (COLMAP
+    splits or trims those while triangulating).
+    """
+    names = list(num_keypoints)
+    offset, image_of = {}, []
+    total = 0
+    for i, n in enumerate(names):
+        offset[n] = total
+        total += int(num_keypoints[n])
+        image_of.append(np.full(int(num_keypoints[n]), i, np.int64))
+    edges = [np.stack([np.asarray(m[:, 0], np.int64) + offset[a], np.asarray(m[:, 1], np.int64) + offset[b]], 1)
+             for (a, b), m in zip(pairs, matches) if len(m)]
+    if not edges:
+        return dict(num_tracks=0, mean_length=0.0, max_length=0, inconsistent=0)
+    e = np.concatenate(edges)
+    lab = connected_components(total, e)
+    in_graph = np.zeros(total, bool)
+    in_graph[e.ravel()] = True
+    comp = lab[in_graph]
+    _, sizes = np.unique(comp, return_counts=True)
+    img = np.concatenate(image_of)[in_graph]
+    # tracks with two nodes of one image: distinct (component, image) < component size
+    ci = np.unique(np.stack([comp, img], 1), axis=0)
+    _, per_comp_images = np.unique(ci[:, 0], return_counts=True)
+    inconsistent = int(np.count_nonzero(per_comp_images < sizes))
+    return dict(num_tracks=int(len(sizes)), mean_length=float(sizes.mean()), max_length=int(sizes.max()),
+                inconsistent=inconsistent)

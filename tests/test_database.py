@@ -1,0 +1,103 @@
+"""COLMAP database round trip (recon.database): cameras, keypoints (+0.5), matches, atomic build."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from recon.database import (build_database, import_scene_images, read_keypoints_opencv, read_verified,
+                            two_view_options, write_keypoints_and_matches)
+
+
+def _write_images(d: Path, sizes) -> list[str]:
+    d.mkdir(parents=True, exist_ok=True)
+    names = []
+    for i, (w, h) in enumerate(sizes):
+        rng = np.random.default_rng(i)
+        img = cv2.resize(rng.integers(0, 255, (h // 8, w // 8, 3), dtype=np.uint8), (w, h))
+        name = f"im {i}.png"
+        (d / name).write_bytes(cv2.imencode(".png", img)[1].tobytes())
+        names.append(name)
+    return names
+
+
+def test_round_trip_keypoints_plus_half_and_matches(tmp_path):
+    names = _write_images(tmp_path / "images", [(160, 120)] * 3)
+    db_path = tmp_path / "database.db"
+    ids, mode, missing = import_scene_images(db_path, tmp_path / "images", names, "auto")
+    assert mode == "single" and not missing and sorted(ids) == sorted(names)
+    rng = np.random.default_rng(0)
+    kpts = {n: rng.uniform(0, 100, (50 + 10 * i, 2)).astype(np.float32) for i, n in enumerate(names)}
+    pairs = [(names[0], names[1]), (names[2], names[1])]  # second pair: larger id first
+    matches = [np.stack([np.arange(20), np.arange(20) + 5], 1).astype(np.uint32),
+               np.stack([np.arange(30), np.arange(30)[::-1]], 1).astype(np.uint32)]
+    write_keypoints_and_matches(db_path, ids, kpts, pairs, matches)
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        assert db.num_images() == 3 and db.num_cameras() == 1
+        for n in names:
+            k = db.read_keypoints(ids[n])
+            assert k.shape[0] == len(kpts[n])
+            np.testing.assert_allclose(k[:, :2], kpts[n] + 0.5, atol=1e-5)  # COLMAP pixel centres
+        m01 = db.read_matches(ids[names[0]], ids[names[1]])
+        np.testing.assert_array_equal(m01, matches[0])
+        m21 = db.read_matches(ids[names[2]], ids[names[1]])  # read in the order written
+        np.testing.assert_array_equal(m21, matches[1])
+        cams = db.read_all_cameras()
+        assert (cams[0].width, cams[0].height) == (160, 120)
+    finally:
+        db.close()
+    np.testing.assert_allclose(read_keypoints_opencv(db_path, ids[names[1]]), kpts[names[1]], atol=1e-5)
+
+
+def test_camera_modes(tmp_path):
+    names = _write_images(tmp_path / "images", [(160, 120), (160, 120), (200, 120)])
+    for mode, want_mode, want_cams in (("auto", "per-image", 3), ("per-image", "per-image", 3)):
+        db_path = tmp_path / f"{mode}.db"
+        ids, used, missing = import_scene_images(db_path, tmp_path / "images", names, mode)
+        assert used == want_mode and not missing
+        db = pycolmap.Database.open(str(db_path))
+        assert db.num_cameras() == want_cams
+        db.close()
+    with pytest.raises(ValueError):
+        import_scene_images(tmp_path / "x.db", tmp_path / "images", names, "bogus")
+
+
+def test_build_is_atomic_and_verifies(tmp_path):
+    names = _write_images(tmp_path / "images", [(320, 240)] * 2)
+    # matches consistent with a real two-view geometry: random 3D points seen by two cameras
+    rng = np.random.default_rng(1)
+    X = np.c_[rng.uniform(-1, 1, (200, 2)), rng.uniform(4, 6, 200)]
+    K = np.array([[300, 0, 159.5], [0, 300, 119.5], [0, 0, 1.0]])
+    R = cv2.Rodrigues(np.array([0, 0.15, 0.0]))[0]
+    t = np.array([-0.8, 0, 0.1])
+    p0 = (K @ X.T).T
+    p1 = (K @ (R @ X.T + t[:, None])).T
+    k0 = (p0[:, :2] / p0[:, 2:]).astype(np.float32)
+    k1 = (p1[:, :2] / p1[:, 2:]).astype(np.float32)
+    m = np.stack([np.arange(200), np.arange(200)], 1).astype(np.uint32)
+    m[180:, 1] = rng.permutation(np.arange(180, 200))  # 20 wrong matches
+    db_path = tmp_path / "database.db"
+    db_path.write_bytes(b"old content")
+    ids, used, missing = build_database(db_path, tmp_path / "images", names, "auto", {names[0]: k0, names[1]: k1},
+                                        [(names[0], names[1])], [m], two_view_options(seed=0))
+    assert not (tmp_path / "database.db.tmp").exists() and not missing
+    verified = read_verified(db_path)
+    (n_in, conf, inl), = verified.values()
+    assert 170 <= n_in <= 185 and conf in ("CALIBRATED", "UNCALIBRATED")
+    assert np.all(inl[inl[:, 0] < 180, 0] == inl[inl[:, 0] < 180, 1])
+    assert np.count_nonzero(inl[:, 0] != inl[:, 1]) <= 4  # a wrong match may lie on its epipolar line
+    assert np.count_nonzero(inl[:, 0] < 180) >= 175
+
+    # a failing build leaves the existing database untouched and no temp file behind
+    before = db_path.read_bytes()
+    with pytest.raises(Exception):
+        build_database(db_path, tmp_path / "images", names, "auto", {}, [], [], two_view_options(),
+                       on_stage=lambda s: (_ for _ in ()).throw(RuntimeError("boom")) if s == "write" else None)
+    assert db_path.read_bytes() == before
+    assert not (tmp_path / "database.db.tmp").exists()

@@ -1,0 +1,428 @@
+"""`recon run`: end to end on a small rendered scene, resuming, bad inputs, and one real scene.
+
+The pipeline is driven with the SIFT baseline (`--method sift`), which is fast and deterministic;
+the default method (extra-affine) goes through exactly the same code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from recon.cli import main
+from recon.pipeline import RunConfig, run_scene
+
+DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
+needs_data = pytest.mark.skipif(not (DATA / "oxford" / "graf" / "img1.png").is_file(),
+                                reason=f"shared test data not found at {DATA}")
+REPO = Path(__file__).resolve().parents[1]
+SIZE = (480, 360)
+REPORT_KEYS = {"num_images", "registered_images", "num_points3D", "mean_track_length", "mean_reprojection_error",
+               "seconds_total", "peak_mb", "stages", "pairs", "skipped", "tracks", "warnings", "status"}
+
+
+# a small rendered 3D scene --------------------------------------------------------------------
+def _textures() -> list[np.ndarray]:
+    out = []
+    for rel in ("oxford/graf/img1.png", "hpatches/v_dogman/1.png", "evd/1/cafe.png"):
+        p = DATA / rel
+        t = cv2.imread(str(p)) if p.is_file() else None
+        if t is None:  # fall back to rotated copies of graf
+            t = np.rot90(cv2.imread(str(DATA / "oxford/graf/img1.png")), len(out)).copy()
+        s = min(t.shape[:2])
+        out.append(cv2.resize(t[:s, :s], (640, 640), interpolation=cv2.INTER_AREA))
+    return out
+
+
+def _look_at(C: np.ndarray, target) -> tuple[np.ndarray, np.ndarray]:
+    f = np.asarray(target, float) - C
+    f /= np.linalg.norm(f)
+    r = np.cross(f, (0, 0, 1.0))
+    r /= np.linalg.norm(r)
+    R = np.stack([r, np.cross(f, r), f])
+    return R, -R @ C
+
+
+def render_corner(out_dir: Path, n: int = 5, sizes=None) -> list[str]:
+    """A concave corner (floor + two walls, 2 x 2 units, textured with real photos) seen by n
+    cameras on an arc: a real 3D scene (three planes, so not one homography) without occlusions.
+    Each plane is drawn with its exact plane-to-image homography K [R u, R v, R o + t]."""
+    tex = _textures()
+    planes = [(np.array([1, 0, 0.]), np.array([0, 1, 0.])),  # floor z = 0
+              (np.array([0, 1, 0.]), np.array([0, 0, 1.])),  # wall x = 0
+              (np.array([1, 0, 0.]), np.array([0, 0, 1.]))]  # wall y = 0
+    img_dir = out_dir / "images"
+    img_dir.mkdir(parents=True, exist_ok=True)
+    names = []
+    for i in range(n):
+        W, H = (sizes[i] if sizes else SIZE)
+        f = 560.0 * W / 640.0
+        K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+        az, el = np.deg2rad(25 + 40 * i / max(1, n - 1)), np.deg2rad(35)
+        C = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)]) * 4.2
+        R, t = _look_at(C, (0.75, 0.75, 0.6))
+        img = np.zeros((H, W, 3), np.uint8)
+        for (u, v), T in zip(planes, tex):
+            S = T.shape[0]
+            Hm = K @ np.stack([R @ u * (2.0 / S), R @ v * (2.0 / S), t], 1)
+            warped = cv2.warpPerspective(T, Hm, (W, H), flags=cv2.INTER_LINEAR)
+            mask = cv2.warpPerspective(np.full((S, S), 255, np.uint8), Hm, (W, H), flags=cv2.INTER_NEAREST)
+            img[mask > 0] = warped[mask > 0]
+        name = f"view_{i:02d}.png"
+        cv2.imwrite(str(img_dir / name), img)
+        names.append(name)
+    return names
+
+
+def make_scene(out_dir: Path, n: int = 5) -> Path:
+    """The other helper's `scenes.render.render_scene` when it exists, else `render_corner`."""
+    try:
+        from scenes.render import render_scene  # type: ignore[import-not-found]
+    except ImportError:
+        render_scene = None
+    if render_scene is not None and n == 5:
+        render_scene(out_dir, preset="corner", seed=0, image_size=SIZE)
+    else:
+        render_corner(out_dir, n)
+    return out_dir
+
+
+def _cfg(out: Path, **kw) -> RunConfig:
+    return RunConfig(out=out, method="sift", progress=False, **kw)
+
+
+def _run(scene: Path, out: Path, **kw):
+    warnings: list[str] = []
+    rep = run_scene(scene, _cfg(out, **kw), on_warning=warnings.append)
+    return rep, warnings
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    if not (DATA / "oxford" / "graf" / "img1.png").is_file():
+        pytest.skip(f"shared test data not found at {DATA}")
+    return make_scene(tmp_path_factory.mktemp("corner") / "scene")
+
+
+@pytest.fixture(scope="module")
+def first_run(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "out"
+    rep, warnings = _run(scene, out)
+    return out, rep, warnings
+
+
+def _images(scene: Path) -> list[Path]:
+    d = scene / "images" if (scene / "images").is_dir() else scene
+    return sorted(p for p in d.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff"))
+
+
+# end to end -----------------------------------------------------------------------------------
+@needs_data
+def test_end_to_end_registers_every_image(first_run):
+    out, rep, warnings = first_run
+    assert rep.ok, rep.message
+    assert rep.num_images == len(_images(Path(rep.scene))) >= 4
+    assert rep.registered_images == rep.num_images
+    assert rep.num_points3D > 200
+    assert rep.mean_track_length > 2.5  # merged keypoints: points seen in more than two images
+    assert rep.tracks["merged"]["mean_length"] > 2.5 and rep.tracks["unmerged"]["mean_length"] == 2.0
+    assert rep.mean_reprojection_error is not None and rep.mean_reprojection_error < 1.5
+    assert not warnings and not rep.skipped
+    # features computed once per image and shared by its pairs (SIFT: one store entry per image)
+    assert rep.features_computed == rep.num_images
+    assert rep.features_reused == 2 * len(rep.pairs) - rep.num_images
+    # outputs
+    for f in ("database.db", "points.ply", "report.json", ".recon_scene.json"):
+        assert (out / f).is_file(), f
+    rec = pycolmap.Reconstruction()
+    rec.read(str(out / "sparse" / "0"))
+    assert rec.num_reg_images() == rep.registered_images and rec.num_points3D() == rep.num_points3D
+    data = json.loads((out / "report.json").read_text())
+    assert REPORT_KEYS <= set(data)
+    assert set(data["stages"]) >= {"load", "match", "tracks", "database", "verify", "sfm", "export"}
+    n = rep.num_images
+    assert len(data["pairs"]) == n * (n - 1) // 2
+    row = data["pairs"][0]
+    assert {"image0", "image1", "reference", "best_view", "raw_matches", "verified_inliers"} <= set(row)
+    assert all(p["verified_inliers"] <= p["merged_matches"] <= p["raw_matches"] for p in data["pairs"])
+    assert not list(out.glob(".*tmp*")) and not (out / "database.db.tmp").exists()
+    import open3d as o3d
+
+    assert len(o3d.io.read_point_cloud(str(out / "points.ply")).points) == rep.num_points3D
+
+
+@needs_data
+def test_database_holds_merged_keypoints_with_colmap_offset(first_run):
+    out, rep, _ = first_run
+    db = pycolmap.Database.open(str(out / "database.db"))
+    try:
+        assert db.num_images() == rep.num_images
+        total_kp = sum(db.num_keypoints_for_image(im.image_id) for im in db.read_all_images())
+        assert total_kp == rep.merge["num_keypoints"]
+        assert db.num_matches() == sum(p.merged_matches for p in rep.pairs)
+        k = db.read_keypoints(db.read_all_images()[0].image_id)
+        assert k[:, :2].min() >= 0.0  # +0.5: nothing at OpenCV's -0.5 edge
+    finally:
+        db.close()
+
+
+@needs_data
+def test_same_output_whatever_the_number_of_workers(scene, first_run, tmp_path):
+    out1, rep1, _ = first_run
+    seen_pairs, seen_models = [], []
+    rep2 = run_scene(scene, _cfg(tmp_path / "out", workers=1),
+                     on_pair=lambda i, a, b, r, cached: seen_pairs.append((i, a, b, r.num_matches, cached)),
+                     on_model=lambda rec, rep: seen_models.append((rec.num_reg_images(), rep.status)))
+    # the hooks (for live logging) saw every pair once and the final model
+    assert sorted(i for i, *_ in seen_pairs) == list(range(len(rep2.pairs)))
+    assert all(not cached for *_, cached in seen_pairs)
+    assert seen_models == [(rep2.registered_images, "ok")]
+    assert [(p.image0, p.image1, p.raw_matches, p.merged_matches) for p in rep1.pairs] == \
+           [(p.image0, p.image1, p.raw_matches, p.merged_matches) for p in rep2.pairs]
+    assert [p.verified_inliers for p in rep1.pairs] == [p.verified_inliers for p in rep2.pairs]
+    a = pycolmap.Database.open(str(out1 / "database.db"))
+    b = pycolmap.Database.open(str(tmp_path / "out" / "database.db"))
+    try:
+        for im in a.read_all_images():
+            jm = b.read_image_with_name(im.name)
+            np.testing.assert_array_equal(a.read_keypoints(im.image_id), b.read_keypoints(jm.image_id))
+    finally:
+        a.close()
+        b.close()
+    assert rep2.registered_images == rep1.registered_images
+
+
+# resuming -------------------------------------------------------------------------------------
+@needs_data
+def test_resume_recomputes_only_missing_pairs(scene, first_run, tmp_path):
+    out1, rep1, _ = first_run
+    out = tmp_path / "out"
+    shutil.copytree(out1, out)
+    # an interrupted run: no model, no report, no database, and three pairs never finished
+    shutil.rmtree(out / "sparse")
+    for f in ("report.json", "database.db", "points.ply"):
+        (out / f).unlink()
+    (out / "cache" / "state.json").unlink()
+    pair_files = sorted((out / "cache" / "pairs").glob("*.npz"))
+    for p in pair_files[:3]:
+        p.unlink()
+    rep, _ = _run(scene, out)
+    assert rep.pairs_computed == 3 and rep.pairs_cached == len(rep.pairs) - 3
+    assert rep.features_computed == 0  # loaded from OUT/cache/features
+    assert rep.registered_images == rep1.registered_images
+    assert [p.verified_inliers for p in rep.pairs] == [p.verified_inliers for p in rep1.pairs]
+    assert not rep.database_reused and not rep.model_reused
+    # run again: nothing to recompute, database and model reused
+    again, _ = _run(scene, out)
+    assert again.pairs_computed == 0 and again.database_reused and again.model_reused
+    assert again.registered_images == rep1.registered_images and again.num_points3D == rep.num_points3D
+    # --overwrite starts over
+    fresh, _ = _run(scene, out, overwrite=True)
+    assert fresh.pairs_computed == len(fresh.pairs) and not fresh.database_reused
+
+
+@needs_data
+def test_resume_after_killed_process(scene, tmp_path):
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    cmd = [sys.executable, "-m", "recon.cli", "run", str(scene), "--out", str(out), "--method", "sift",
+           "--workers", "1", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    pair_dir = out / "cache" / "pairs"
+    deadline = time.time() + 120
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if pair_dir.is_dir() and [p for p in pair_dir.glob("*.npz") if not p.name.startswith(".")]:
+                break
+            time.sleep(0.02)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    done = [p for p in pair_dir.glob("*.npz") if not p.name.startswith(".")]  # temp files start with "."
+    assert len(done) >= 1
+    rep, _ = _run(scene, out)
+    assert rep.pairs_cached >= 1 and rep.pairs_cached + rep.pairs_computed == len(rep.pairs)
+    assert rep.ok and rep.registered_images == rep.num_images
+    assert not [p for p in pair_dir.glob("*.tmp.npz") if not p.name.startswith(".")]
+
+
+# bad input through the CLI --------------------------------------------------------------------
+def _cli(capsys, *args) -> tuple[int, str, str]:
+    rc = main(["run", *map(str, args), "--method", "sift", "--no-progress"])
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def _error_lines(err: str) -> list[str]:
+    assert "Traceback" not in err
+    return [ln for ln in err.splitlines() if ln.startswith("recon: error:")]
+
+
+def test_cli_empty_folder(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    rc, _, err = _cli(capsys, tmp_path / "empty")
+    assert rc == 2 and len(_error_lines(err)) == 1 and "no images found" in err
+    assert not (tmp_path / "empty" / "recon").exists()
+
+
+def test_cli_missing_folder(tmp_path, capsys):
+    rc, _, err = _cli(capsys, tmp_path / "nope")
+    assert rc == 2 and len(_error_lines(err)) == 1 and "no such scene folder" in err
+
+
+@needs_data
+def test_cli_single_image(scene, tmp_path, capsys):
+    d = tmp_path / "one"
+    d.mkdir()
+    shutil.copy(_images(scene)[0], d)
+    rc, _, err = _cli(capsys, d)
+    assert rc == 2 and len(_error_lines(err)) == 1 and "at least 2 images" in err
+
+
+@needs_data
+def test_cli_junk_corrupt_and_duplicate_files_are_skipped(scene, tmp_path, capsys):
+    d = tmp_path / "messy"
+    d.mkdir()
+    imgs = _images(scene)
+    for p in imgs:
+        shutil.copy(p, d)
+    shutil.copy(imgs[0], d / "zz_duplicate.png")
+    jpg = cv2.imencode(".jpg", cv2.imread(str(imgs[1])))[1].tobytes()
+    (d / "broken.JPG").write_bytes(jpg[: len(jpg) // 3])
+    (d / "notes.txt").write_text("not an image")
+    rc, out, err = _cli(capsys, d, "--out", tmp_path / "out")
+    assert rc == 0, err
+    assert "Traceback" not in err
+    warn = [ln for ln in err.splitlines() if ln.startswith("recon: warning:")]
+    assert any("notes.txt" in w for w in warn) and any("broken.JPG" in w for w in warn)
+    assert any("zz_duplicate.png" in w and "duplicate" in w for w in warn)
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert {s["name"] for s in rep["skipped"]} == {"broken.JPG", "zz_duplicate.png"}
+    assert rep["registered_images"] == rep["num_images"] == len(imgs)
+    assert "registered images" in out  # the summary table
+
+
+@needs_data
+def test_cli_spaces_non_ascii_and_different_sizes(tmp_path, capsys):
+    d = tmp_path / "scène avec espaces"
+    sizes = [SIZE, SIZE, (400, 300), SIZE, (560, 420)]
+    render_corner(d, 5, sizes=sizes)
+    for i, p in enumerate(sorted((d / "images").iterdir())):
+        p.rename(p.with_name(f"vue n°{i} é.png"))
+    rc, _, err = _cli(capsys, d)  # default --out inside the scene
+    assert rc == 0, err
+    rep = json.loads((d / "recon" / "report.json").read_text())
+    assert rep["camera_mode_used"] == "per-image"
+    assert rep["registered_images"] >= 4
+    assert all("°" in n for n in rep["registered"])
+    # forcing one camera for images of different sizes is refused up front
+    rc, _, err = _cli(capsys, d, "--out", tmp_path / "single", "--camera-mode", "single")
+    assert rc == 2 and len(_error_lines(err)) == 1 and "one size" in err
+
+
+@needs_data
+def test_cli_read_only_scene_asks_for_out(scene, tmp_path, capsys):
+    d = tmp_path / "ro"
+    shutil.copytree(scene, d)
+    os.chmod(d, 0o555)
+    try:
+        rc, _, err = _cli(capsys, d)
+        assert rc == 2 and len(_error_lines(err)) == 1 and "--out" in err and "read-only" in err
+        assert not (d / "recon").exists()
+    finally:
+        os.chmod(d, 0o755)
+
+
+@needs_data
+def test_cli_refuses_output_of_another_scene(scene, first_run, tmp_path, capsys):
+    out1, _, _ = first_run
+    other = tmp_path / "other"
+    (other / "images").mkdir(parents=True)
+    for p in _images(scene)[:3]:
+        shutil.copy(p, other / "images")
+    out = tmp_path / "out"
+    shutil.copytree(out1, out)
+    rc, _, err = _cli(capsys, other, "--out", out)
+    assert rc == 2 and len(_error_lines(err)) == 1 and "another scene" in err
+    # a folder that is not a recon output is refused too
+    stray = tmp_path / "stray"
+    stray.mkdir()
+    (stray / "thesis.tex").write_text("precious")
+    (stray / "cache").mkdir()
+    for extra in ([], ["--overwrite"]):
+        rc, _, err = _cli(capsys, other, "--out", stray, *extra)
+        assert rc == 2 and "not a recon output folder" in err
+        assert (stray / "thesis.tex").exists() and (stray / "cache").is_dir()
+    # --overwrite replaces the other scene's reconstruction
+    rc, _, err = _cli(capsys, other, "--out", out, "--overwrite")
+    assert rc == 0, err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["scene"] == str(other.resolve()) and rep["pairs_computed"] == 3
+
+
+def test_cli_no_model_keeps_database_and_report(tmp_path, capsys):
+    d = tmp_path / "noise"
+    d.mkdir()
+    for i in range(3):  # unrelated random textures: nothing survives geometric verification
+        rng = np.random.default_rng(i)
+        img = cv2.resize(rng.integers(0, 255, (60, 80), dtype=np.uint8), (320, 240), interpolation=cv2.INTER_CUBIC)
+        cv2.imwrite(str(d / f"n{i}.png"), img)
+    rc, _, err = _cli(capsys, d, "--out", tmp_path / "out")
+    assert rc == 1
+    lines = _error_lines(err)
+    assert len(lines) == 1 and "no model" in lines[0]
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["status"] == "no_model" and rep["registered_images"] == 0
+    assert (tmp_path / "out" / "database.db").is_file() and not (tmp_path / "out" / "sparse" / "0").exists()
+
+
+@pytest.mark.parametrize("args, text", [
+    (["--camera-mode", "fisheye"], "--camera-mode"),
+    (["--pairs", "sequential:x"], "sequential:K"),
+    (["--pairs", "nofile.txt"], "pairs file"),
+    (["--max-size", "10"], "--max-size"),
+    (["--merge-px", "-1"], "--merge-px"),
+])
+def test_cli_bad_options(tmp_path, capsys, args, text):
+    rc = main(["run", str(tmp_path), "--method", "sift", "--no-progress", *args])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(_error_lines(err)) == 1 and text in err
+
+
+def test_cli_ctrl_c_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
+    import recon.pipeline
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(recon.pipeline, "run_scene", interrupted)
+    rc = main(["run", str(tmp_path), "--method", "sift", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 130 and "Traceback" not in err and "rerun the same command to resume" in err
+
+
+def test_cli_unknown_method(tmp_path, capsys):
+    rc = main(["run", str(tmp_path), "--method", "surf", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(_error_lines(err)) == 1 and "surf" in err
+
+
+# one real scene (about 15 s on 2 cores, so not marked slow) -------------------------------------
+@pytest.mark.skipif(not (DATA / "scenes" / "fountain_P11" / "images").is_dir(), reason="fountain_P11 not found")
+def test_fountain_real_scene_reduced(tmp_path):
+    rep, _ = _run(DATA / "scenes" / "fountain_P11", tmp_path / "out", max_size=640)
+    assert rep.ok, rep.message
+    assert rep.num_images == 11 and rep.registered_images >= 10
+    assert rep.mean_track_length > 3.0 and rep.mean_reprojection_error < 1.5

@@ -1,0 +1,139 @@
+"""Keypoint merging into multi-view tracks (recon.tracks) on synthetic keypoints."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon.tracks import PairMatches, connected_components, merge_tracks, track_stats
+
+
+def _three_view_pairs(n=60, noise=0.3, seed=0):
+    """n 3D points seen in images A, B, C; each pair reports its own noisy, shuffled keypoints."""
+    rng = np.random.default_rng(seed)
+    # well separated true positions (>= 10 px apart) so clusters cannot touch
+    grid = np.stack(np.meshgrid(np.arange(10), np.arange(10)), -1).reshape(-1, 2)[:n] * 20.0 + 30.0
+    true = {k: grid + rng.uniform(-3, 3, grid.shape) for k in "ABC"}
+    pairs = []
+    for a, b in (("A", "B"), ("B", "C"), ("A", "C")):
+        pa, pb = rng.permutation(n), rng.permutation(n)  # per-pair keypoint order differs
+        k0 = (true[a][pa] + rng.normal(0, noise, (n, 2))).astype(np.float32)
+        k1 = (true[b][pb] + rng.normal(0, noise, (n, 2))).astype(np.float32)
+        inv_a, inv_b = np.argsort(pa), np.argsort(pb)  # true point j is k0[inv_a[j]], k1[inv_b[j]]
+        m = np.stack([inv_a, inv_b], 1)
+        pairs.append(PairMatches(a, b, k0, k1, m, rng.uniform(50, 200, n).astype(np.float32)))
+    return pairs, true
+
+
+def _nk(mt):
+    return {k: len(v) for k, v in mt.keypoints.items()}
+
+
+def test_merging_gives_one_keypoint_per_point_and_tracks_of_three():
+    pairs, true = _three_view_pairs()
+    mt = merge_tracks(pairs, 2.0)
+    assert _nk(mt) == {"A": 60, "B": 60, "C": 60}  # 120 observations per image -> 60 keypoints
+    assert mt.stats.num_observations == 360 and mt.stats.num_keypoints == 180
+    assert mt.stats.dropped_duplicates == 0 and mt.stats.dropped_collisions == 0
+    for name, k in mt.keypoints.items():  # merged positions are the averages: close to the truth
+        d = np.linalg.norm(k[:, None] - true[name][None], axis=2).min(1)
+        assert d.max() < 1.0
+    st = track_stats(_nk(mt), mt.pairs, mt.matches)
+    assert st == {"num_tracks": 60, "mean_length": 3.0, "max_length": 3, "inconsistent": 0}
+
+
+def test_no_merging_keeps_pairs_apart_and_tracks_of_two():
+    pairs, _ = _three_view_pairs()
+    mt = merge_tracks(pairs, 0.0)
+    assert _nk(mt) == {"A": 120, "B": 120, "C": 120}
+    st = track_stats(_nk(mt), mt.pairs, mt.matches)
+    assert st["num_tracks"] == 180 and st["mean_length"] == 2.0 and st["max_length"] == 2
+
+
+def test_per_image_radius_and_matches_index_merged_keypoints():
+    pairs, _ = _three_view_pairs()
+    mt = merge_tracks(pairs, {"A": 2.0, "B": 2.0, "C": 0.0})  # C not merged
+    assert _nk(mt) == {"A": 60, "B": 60, "C": 120}
+    for (a, b), m, p in zip(mt.pairs, mt.matches, pairs):
+        assert m.dtype == np.uint32 and m.shape == (60, 2)
+        # every merged match joins points near the matcher's original pair of points
+        ka, kb = mt.keypoints[a][m[:, 0]], mt.keypoints[b][m[:, 1]]
+        pa, pb = p.kpts0[p.matches[:, 0]], p.kpts1[p.matches[:, 1]]
+        assert np.abs(np.sort(ka[:, 0]) - np.sort(pa[:, 0])).max() < 2.0
+        assert np.abs(np.sort(kb[:, 0]) - np.sort(pb[:, 0])).max() < 2.0
+
+
+def test_duplicates_and_many_to_one_collisions_are_dropped():
+    k0 = np.array([[10, 10], [10.5, 10.2], [100, 100]], np.float32)  # first two merge
+    k1 = np.array([[50, 50], [80, 80], [50.4, 50.1], [200, 200]], np.float32)  # 0 and 2 merge
+    m = np.array([[0, 0],   # -> (a, x)
+                  [1, 2],   # -> (a, x) again: duplicate
+                  [1, 1],   # -> (a, y): collision with (a, x) in image 0
+                  [2, 3]])  # -> (b, z)
+    dist = np.array([5, 1, 2, 3], np.float32)  # the duplicate is the best (lowest) one
+    mt = merge_tracks([PairMatches("A", "B", k0, k1, m, dist)], 2.0)
+    assert _nk(mt) == {"A": 2, "B": 3}
+    assert mt.stats.dropped_duplicates == 1 and mt.stats.dropped_collisions == 1
+    out = mt.matches[0]
+    assert len(out) == 2
+    assert len(set(out[:, 0].tolist())) == 2 and len(set(out[:, 1].tolist())) == 2  # one-to-one
+    # the kept (a, .) match is (a, x), not the worse (a, y)
+    a = int(np.argmin(np.linalg.norm(mt.keypoints["A"] - [10.25, 10.1], axis=1)))
+    x = int(np.argmin(np.linalg.norm(mt.keypoints["B"] - [50.2, 50.05], axis=1)))
+    assert [a, x] in out.tolist()
+
+
+def test_radius_not_grid_cells_decides():
+    # 0.2 px apart across a 2 px grid border (x = 1.5): a fixed grid would split them
+    k = np.array([[1.4, 5.0], [1.6, 5.0]], np.float32)
+    other = np.array([[20, 20], [40, 40]], np.float32)
+    pairs = [PairMatches("A", "B", k[:1], other[:1], np.array([[0, 0]])),
+             PairMatches("A", "C", k[1:], other[1:], np.array([[0, 0]]))]
+    mt = merge_tracks(pairs, 2.0)
+    assert len(mt.keypoints["A"]) == 1
+    assert np.allclose(mt.keypoints["A"][0], [1.5, 5.0])
+    assert track_stats(_nk(mt), mt.pairs, mt.matches)["mean_length"] == 3.0
+
+
+def test_merging_is_deterministic_and_exact_repeats_collapse():
+    pairs, _ = _three_view_pairs(seed=3)
+    a = merge_tracks(pairs, 2.0)
+    b = merge_tracks(pairs, 2.0)
+    for n in a.keypoints:
+        assert np.array_equal(a.keypoints[n], b.keypoints[n])
+    for x, y in zip(a.matches, b.matches):
+        assert np.array_equal(x, y)
+    # identical keypoints in every pair (a detector run once per image) merge exactly
+    k = np.random.default_rng(1).uniform(0, 500, (40, 2)).astype(np.float32)
+    m = np.stack([np.arange(40), np.arange(40)], 1)
+    mt = merge_tracks([PairMatches("A", "B", k, k, m), PairMatches("A", "C", k, k, m)], 0.01)
+    assert len(mt.keypoints["A"]) == 40 and np.allclose(np.sort(mt.keypoints["A"], 0), np.sort(k, 0))
+
+
+def test_connected_components_matches_union_find():
+    rng = np.random.default_rng(0)
+    n = 500
+    edges = rng.integers(0, n, (300, 2))
+    lab = connected_components(n, edges)
+    parent = list(range(n))
+
+    def find(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for a, b in edges.tolist():
+        parent[find(a)] = find(b)
+    roots = [find(i) for i in range(n)]
+    for i in range(n):
+        for j in (0, i // 2, n - 1):
+            assert (lab[i] == lab[j]) == (roots[i] == roots[j])
+
+
+def test_track_stats_counts_inconsistent_tracks():
+    # A0-B0, B0-C0, C0-A1: one track holding two keypoints of A
+    m_ab = np.array([[0, 0]], np.uint32)
+    m_bc = np.array([[0, 0]], np.uint32)
+    m_ca = np.array([[0, 1]], np.uint32)
+    st = track_stats({"A": 2, "B": 1, "C": 1}, [("A", "B"), ("B", "C"), ("C", "A")], [m_ab, m_bc, m_ca])
+    assert st == {"num_tracks": 1, "mean_length": 4.0, "max_length": 4, "inconsistent": 1}
