@@ -9,7 +9,6 @@ diagnostics show the whole (tilt, longitude) grid.
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Literal
@@ -21,7 +20,7 @@ from .features import DetectorConfig, Features, detect
 from .matching_utils import ransac_homography, ratio_match
 from .store import FeatureStore
 from .types import CoarseScore, ViewParams
-from .views import Interp, map_to_original, simulate
+from .views import Interp, capped_view, map_to_original, simulate
 
 
 @dataclass(frozen=True)
@@ -36,6 +35,8 @@ class CoarseConfig:
     area (its zoom capped at sqrt(ratio * t)); the paper's zoom s = 1 + k*ds makes every steep
     view ~2x the original's area, which doubles ORB's cost while ORB only has to rank views.
     The fine stage renders the view at its full zoom. 0 disables the cap.
+    `max_side`: views (and the target's ORB) are rendered as if the image's longer side were
+    at most this many pixels: ranking views needs no more, and a 1600 px photo costs 2.5x less.
     """
 
     orb_features: int = 1000
@@ -46,6 +47,7 @@ class CoarseConfig:
     antialias: bool = False
     accept_inliers: int = 40
     max_area_ratio: float = 1.0
+    max_side: int = 1024
     seed: int = 0
 
     @property
@@ -95,18 +97,19 @@ def view_features(store: FeatureStore, name: str, view: ViewParams, det: Detecto
     return store.get_or_compute(name, key, compute)
 
 
-def coarse_render_view(view: ViewParams, max_area_ratio: float) -> ViewParams:
-    """The view as the coarse stage renders it: same (t, phi), zoom capped (see CoarseConfig)."""
-    if max_area_ratio <= 0:
-        return view
-    s = min(view.s, math.sqrt(max_area_ratio * view.t))
-    return ViewParams(view.t, view.phi, round(s, 6))
+def coarse_target_features(store: FeatureStore, target: str, cfg: CoarseConfig) -> Features:
+    """The target's ORB for the coarse stage, at the coarse resolution (`max_side`)."""
+    h, w = store.image(target).shape[:2]
+    ident = capped_view(ViewParams(1.0, 0.0, 1.0), (w, h), 0.0, cfg.max_side)
+    return view_features(store, target, ident, cfg.detector, cfg.interp, cfg.antialias)
 
 
 def score_view(store: FeatureStore, ref: str, target: str, view: ViewParams, cfg: CoarseConfig) -> CoarseScore:
     det = cfg.detector
-    fv = view_features(store, ref, coarse_render_view(view, cfg.max_area_ratio), det, cfg.interp, cfg.antialias)
-    ft = original_features(store, target, det)
+    h, w = store.image(ref).shape[:2]
+    rendered = capped_view(view, (w, h), cfg.max_area_ratio, cfg.max_side)
+    fv = view_features(store, ref, rendered, det, cfg.interp, cfg.antialias)
+    ft = coarse_target_features(store, target, cfg)
     m, _ = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_HAMMING, cfg.ratio)
     inl = 0
     if len(m) >= 8:

@@ -17,13 +17,13 @@ import numpy as np
 
 from .coarse import CoarseConfig, coarse_search, original_features, rank_views, view_features
 from .escalation import Attempt, EscalationConfig, escalate
-from .fine import FineConfig, FineMatches, fine_match, guided_match
+from .fine import FineConfig, FineMatches, fine_match, guided_match, select_fine_views
 from .matching_utils import ransac_homography, unique_train
 from .reference import ReferenceConfig, choose_reference
 from .store import FeatureStore
 from .types import CoarseScore, PairResult
 from .verify import verify_matches
-from .views import GridConfig, view_grid
+from .views import GridConfig, capped_view, view_grid
 
 
 @dataclass(frozen=True)
@@ -71,13 +71,24 @@ class MatcherConfig:
                              escalation=EscalationConfig(enabled=False))
 
     @staticmethod
+    def multiview() -> "MatcherConfig":
+        """For `recon run`: no final homography (COLMAP verifies with F / E), fine views
+        rendered at most at the original's area (1600 px photos), everything else default."""
+        return MatcherConfig(final_homography=False, fine=FineConfig(max_area_ratio=1.0))
+
+    @staticmethod
     def from_overrides(**kw) -> "MatcherConfig":
-        """Build from flat overrides: `variant="paper"`, top-level fields, or `section__field`.
+        """Build from flat overrides: `variant` ("default", "paper", "multiview"), top-level
+        fields, or `section__field`.
 
         e.g. `from_overrides(final_homography=False, coarse__rank_by="matches", seed=3)`.
         Unknown names raise ValueError listing the valid ones.
         """
-        base = MatcherConfig.paper() if kw.pop("variant", "default") == "paper" else MatcherConfig()
+        variant = kw.pop("variant", "default")
+        presets = {"default": MatcherConfig, "paper": MatcherConfig.paper, "multiview": MatcherConfig.multiview}
+        if variant not in presets:
+            raise ValueError(f"unknown variant {variant!r}; choose one of {', '.join(presets)}")
+        base = presets[variant]()
         top = {f.name for f in fields(MatcherConfig)}
         sections: dict[str, dict] = {}
         flat: dict = {}
@@ -123,8 +134,7 @@ class ExtraAffineMatcher:
     # ------------------------------------------------------------------------------------------
     def _attempt(self, store: FeatureStore, names: tuple[str, str], ref: int,
                  scores: list[CoarseScore], top_k: int, label: str) -> Attempt:
-        ranked = rank_views(scores)
-        views = [c.view for c in ranked[:top_k]]
+        views = select_fine_views(rank_views(scores), top_k)
         fm = fine_match(store, names[ref], names[1 - ref], views, self.cfg.fine, self._pool)
         n_verified, _ = verify_matches(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]],
                                        self.cfg.verify_model, self.cfg.seed)
@@ -209,8 +219,10 @@ class ExtraAffineMatcher:
         ft = original_features(store, names[1 - ref], det)
         kpts_ref, pairs, dists = [], [], []
         offset = 0
+        size = store.image(names[ref]).shape[1::-1]
         for view in att.views:
-            fv = view_features(store, names[ref], view, det, cfg.fine.interp, cfg.fine.antialias)
+            rendered = capped_view(view, size, cfg.fine.max_area_ratio)
+            fv = view_features(store, names[ref], rendered, det, cfg.fine.interp, cfg.fine.antialias)
             m, d = guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, H_t_from_ref,
                                 cfg.guided_px, cfg.guided_ratio)
             kpts_ref.append(fv.kpts[m[:, 0]])

@@ -7,17 +7,27 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75,
-                ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
-    """Lowe's ratio test with brute force: (K, 2) (query, train) indices and distances.
+FLANN_MIN_SIZE = 3000  # brute force below this many descriptors on either side
 
-    Brute force is exact and deterministic; with at most a few thousand descriptors per side
-    (ORB 1000, SIFT of one view) it is also faster than building a FLANN index.
+
+def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75, seed: int = 0,
+                flann_min_size: int = FLANN_MIN_SIZE) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Lowe's ratio test: (K, 2) (query, train) indices and the nearest distances.
+
+    Brute force (exact) for small sets, such as ORB 1000 or the 1000 strongest SIFT; a seeded
+    FLANN k-d forest for float descriptors when both sides exceed `flann_min_size` (10k x 10k
+    SIFT of 1600 px photos: brute force ~1 s, FLANN ~0.15 s, with >97 % of the same matches).
+    OpenCV's per-thread RNG is seeded just before the index is built, so results are
+    deterministic whichever thread runs them.
     """
     if len(desc_q) < 1 or len(desc_t) < 2:
         return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
-    bf = cv2.BFMatcher(norm, crossCheck=False)
-    knn = bf.knnMatch(desc_q, desc_t, k=2)
+    if norm != cv2.NORM_HAMMING and min(len(desc_q), len(desc_t)) >= flann_min_size:
+        cv2.setRNGSeed(seed)
+        matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
+        knn = matcher.knnMatch(np.asarray(desc_q, np.float32), np.asarray(desc_t, np.float32), k=2)
+    else:
+        knn = cv2.BFMatcher(norm, crossCheck=False).knnMatch(desc_q, desc_t, k=2)
     out, dist = [], []
     for pair in knn:
         if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:

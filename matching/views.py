@@ -72,6 +72,22 @@ def view_grid(cfg: GridConfig = GridConfig()) -> list[ViewParams]:
     return views
 
 
+def capped_view(view: ViewParams, size: tuple[int, int], max_area_ratio: float = 0.0,
+                max_side: int = 0) -> ViewParams:
+    """The view as actually rendered when its zoom is capped for speed: same (t, phi).
+
+    `max_area_ratio` (> 0) caps the view's area at that multiple of the original's (zoom at
+    most sqrt(ratio * t)); `max_side` (> 0) renders as if the original's longer side were at
+    most that many pixels. Keypoints still map back exactly: the affine includes the zoom.
+    """
+    s = view.s
+    if max_area_ratio > 0:
+        s = min(s, math.sqrt(max_area_ratio * view.t))
+    if max_side > 0 and max(size) > max_side:
+        s *= max_side / float(max(size))
+    return view if s == view.s else ViewParams(view.t, view.phi, round(s, 6))
+
+
 def linear_part(view: ViewParams) -> NDArray[np.float64]:
     """2x2 matrix s * diag(1/t, 1) * R(phi) (R as OpenCV's getRotationMatrix2D, y down)."""
     c, sn = math.cos(math.radians(view.phi)), math.sin(math.radians(view.phi))
@@ -151,7 +167,10 @@ def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest
     A, (ow, oh) = view_affine((w, h), view)
     flag = _CV_INTERP[interp]
     sigma = antialias_sigma(view) if antialias else 0.0
-    if sigma <= 0.0:
+    if view.t == 1.0 and view.phi == 0.0 and view.s < 1.0:  # a pure downscale: area-average it
+        out = cv2.resize(img, (ow, oh), interpolation=cv2.INTER_AREA)
+        A = np.array([[ow / w, 0.0, 0.5 * ow / w - 0.5], [0.0, oh / h, 0.5 * oh / h - 0.5]])
+    elif sigma <= 0.0:
         out = cv2.warpAffine(img, A, (ow, oh), flags=flag, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     else:
         rot = ViewParams(t=1.0, phi=view.phi, s=view.s)

@@ -139,7 +139,10 @@ def make_matcher(method: str, seed: int = 0, inner_workers: int = 1) -> PairMatc
     cfg = getattr(probe, "cfg", None)
     known = {f.name for f in dataclasses.fields(cfg)} if dataclasses.is_dataclass(cfg) else set()
     wanted = {"final_homography": False, "seed": int(seed), "workers": int(inner_workers)}
-    return get_matcher(method, **{k: v for k, v in wanted.items() if k in known})
+    overrides = {k: v for k, v in wanted.items() if k in known}
+    if method == "extra-affine":
+        overrides["variant"] = "multiview"
+    return get_matcher(method, **overrides)
 
 
 def matcher_identity(matcher: PairMatcher) -> str:
