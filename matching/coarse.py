@@ -111,12 +111,12 @@ def score_view(store: FeatureStore, ref: str, target: str, view: ViewParams, cfg
     fv = view_features(store, ref, rendered, det, cfg.interp, cfg.antialias)
     ft = coarse_target_features(store, target, cfg)
     m, _ = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_HAMMING, cfg.ratio)
-    inl = 0
-    if len(m) >= 8:
-        _, mask = ransac_homography(fv.kpts[m[:, 0]], ft.kpts[m[:, 1]], cfg.ransac_px, seed=cfg.seed, max_iters=2000)
+    inl, H = 0, None
+    if len(m) >= 8:  # keypoints are already in original pixels, so H maps reference -> target
+        H, mask = ransac_homography(fv.kpts[m[:, 0]], ft.kpts[m[:, 1]], cfg.ransac_px, seed=cfg.seed, max_iters=2000)
         inl = int(mask.sum())
     score = float(len(m) if cfg.rank_by == "matches" else inl)
-    return CoarseScore(view=view, matches=int(len(m)), inliers=inl, score=score)
+    return CoarseScore(view=view, matches=int(len(m)), inliers=inl, score=score, H_target_from_ref=H)
 
 
 def coarse_search(store: FeatureStore, ref: str, target: str, views: list[ViewParams],

@@ -7,6 +7,7 @@ fast path ends with fewer than `min_inliers` verified matches escalates, cheapes
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -19,7 +20,8 @@ from .coarse import CoarseConfig, coarse_search, original_features, rank_views, 
 from .escalation import Attempt, EscalationConfig, escalate
 from .fine import FineConfig, FineMatches, fine_match, guided_match, select_fine_views
 from .matching_utils import ransac_homography, unique_train
-from .reference import ReferenceConfig, choose_reference
+from .metrics import local_scale
+from .reference import ReferenceConfig, ReferenceDecision, choose_reference
 from .store import FeatureStore
 from .types import CoarseScore, PairResult
 from .verify import verify_matches
@@ -140,19 +142,39 @@ class ExtraAffineMatcher:
                                        self.cfg.verify_model, self.cfg.seed)
         return Attempt(label=label, reference=ref, fine=fm, views=views, coarse=scores, verified=n_verified)
 
-    def _coarse_both_if_needed(self, store: FeatureStore, names: tuple[str, str], decision) -> dict[int, list[CoarseScore]]:
-        """Coarse scores per simulated side. An undecided reference first tries the side Eq. 1
-        prefers and runs the other side only if that side's best view is weak
-        (fewer than `coarse.accept_inliers` RANSAC inliers)."""
+    def _coarse_both_if_needed(self, store: FeatureStore, names: tuple[str, str],
+                               decision: ReferenceDecision) -> dict[int, list[CoarseScore]]:
+        """Coarse scores per simulated side; settles an undecided reference on the way.
+
+        With an undecided reference (the originals barely match), the side Eq. 1 prefers is
+        searched first. If its best view is verified (>= `coarse.accept_inliers` / 2 inliers),
+        that view's homography gives the relative scale at the reference's centre, the same
+        quantity the ground truth uses: when it says the other image is >10 % larger, the
+        other side becomes the reference. With no verified view, both sides are searched and
+        the better best view wins. `decision` is updated in place with the outcome.
+        """
         cfg = self.cfg
         if decision.reference is not None:
             s = decision.reference
             return {s: coarse_search(store, names[s], names[1 - s], self.views, cfg.coarse, self._pool)}
         first = 0 if decision.f0 >= decision.f1 else 1
         out = {first: coarse_search(store, names[first], names[1 - first], self.views, cfg.coarse, self._pool)}
-        if max(c.inliers for c in out[first]) < cfg.coarse.accept_inliers:
-            second = 1 - first
-            out[second] = coarse_search(store, names[second], names[first], self.views, cfg.coarse, self._pool)
+        best = rank_views(out[first])[0]
+        if best.inliers >= cfg.coarse.accept_inliers // 2 and best.H_target_from_ref is not None:
+            h, w = store.image(names[first]).shape[:2]
+            area = local_scale(best.H_target_from_ref, ((w - 1) / 2.0, (h - 1) / 2.0))
+            lin = math.sqrt(area) if math.isfinite(area) and area > 0 else 1.0
+            if lin > cfg.reference.scale_tolerance:
+                chosen = 1 - first
+                out[chosen] = coarse_search(store, names[chosen], names[first], self.views, cfg.coarse, self._pool)
+            else:
+                chosen = first
+            decision.reference = chosen
+            decision.reason += (f"; coarse view geometry: image {first} maps {lin:.2f}x into image {1 - first}, "
+                                f"so image {chosen} is the reference")
+            return out
+        second = 1 - first
+        out[second] = coarse_search(store, names[second], names[first], self.views, cfg.coarse, self._pool)
         return out
 
     def match(self, store: FeatureStore, name0: str, name1: str) -> PairResult:

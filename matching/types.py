@@ -47,6 +47,8 @@ class CoarseScore:
     matches: int  # ratio-test ORB matches between the view and the target
     inliers: int  # RANSAC homography inliers among them (0 when not computed)
     score: float  # what the search ranks by (matches, or inliers; see CoarseConfig)
+    # the RANSAC homography, original reference pixels -> target pixels (None below 8 matches)
+    H_target_from_ref: NDArray[np.float64] | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass

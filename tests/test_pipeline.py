@@ -236,7 +236,7 @@ def test_resume_recomputes_only_missing_pairs(scene, first_run, tmp_path):
 def test_resume_after_killed_process(scene, tmp_path):
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    cmd = [sys.executable, "-m", "recon.cli", "run", str(scene), "--out", str(out), "--method", "sift",
+    cmd = [sys.executable, "-m", "recon", "run", str(scene), "--out", str(out), "--method", "sift",
            "--workers", "1", "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     pair_dir = out / "cache" / "pairs"
