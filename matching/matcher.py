@@ -68,15 +68,15 @@ class MatcherConfig:
     def paper() -> "MatcherConfig":
         """A plain reading of the paper: Eq. 1 reference, most-matches ranking, no blur, no escalation."""
         return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
-                             coarse=CoarseConfig(rank_by="matches"),
-                             fine=FineConfig(antialias=False), fine_top_k=1,
+                             coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0),
+                             fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
                              escalation=EscalationConfig(enabled=False))
 
     @staticmethod
     def multiview() -> "MatcherConfig":
-        """For `recon run`: no final homography (COLMAP verifies with F / E), fine views
-        rendered at most at the original's area (1600 px photos), everything else default."""
-        return MatcherConfig(final_homography=False, fine=FineConfig(max_area_ratio=1.0))
+        """For `recon run`: no final homography (COLMAP verifies with F / E); the escalation
+        trigger then counts fundamental-matrix inliers."""
+        return MatcherConfig(final_homography=False)
 
     @staticmethod
     def from_overrides(**kw) -> "MatcherConfig":
