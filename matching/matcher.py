@@ -74,9 +74,12 @@ class MatcherConfig:
 
     @staticmethod
     def multiview() -> "MatcherConfig":
-        """For `recon run`: no final homography (COLMAP verifies with F / E); the escalation
-        trigger then counts fundamental-matrix inliers."""
-        return MatcherConfig(final_homography=False)
+        """For `recon run`: no final homography (COLMAP verifies with F / E; the escalation
+        trigger counts fundamental-matrix inliers) and only the cheap escalation levels
+        (`topk`, `swap`): in exhaustive matching most weak pairs simply do not overlap, and the
+        two-sided levels cost 5-30 s each on them."""
+        return MatcherConfig(final_homography=False,
+                             escalation=EscalationConfig(pairs=False, two_sided=False))
 
     @staticmethod
     def from_overrides(**kw) -> "MatcherConfig":
