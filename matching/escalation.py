@@ -228,13 +228,8 @@ def coarse_orb(store: FeatureStore, name: str, view: ViewParams, m: "ExtraAffine
 
 
 def hamming_ratio_match(fa: Features, fb: Features, ratio: float) -> NDArray[np.int32]:
-    """Lowe's ratio test on ORB descriptors without per-match Python objects (cv2.batchDistance)."""
-    if len(fa) < 1 or len(fb) < 2:
-        return np.zeros((0, 2), np.int32)
-    d, idx = cv2.batchDistance(fa.descriptors, fb.descriptors, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
-    ok = (idx[:, 1] >= 0) & (d[:, 0] < ratio * d[:, 1])
-    q = np.flatnonzero(ok)
-    return np.stack([q, idx[q, 0]], axis=1).astype(np.int32)
+    """Lowe's ratio test on ORB descriptors (exact, array-based; see `ratio_match`)."""
+    return ratio_match(fa.descriptors, fb.descriptors, cv2.NORM_HAMMING, ratio)[0]
 
 
 def score_pair(fa: Features, fb: Features, a: ViewParams, b: ViewParams, ratio: float, ransac_px: float,
