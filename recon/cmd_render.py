@@ -1,0 +1,41 @@
+"""`recon render-scene OUT_DIR`: render a project-made extreme-viewpoint scene with ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+
+
+def render_command(
+    out_dir: Path = typer.Argument(..., help="Folder to write images/ and gt/ into."),
+    preset: str = typer.Option("corner", "--preset", help="Scene preset (see --list-presets)."),
+    texture: Optional[list[Path]] = typer.Option(None, "--texture", help="Photo(s) to texture the planes with (repeatable)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the procedural textures and sensor noise."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing scene in OUT_DIR."),
+    list_presets: bool = typer.Option(False, "--list-presets", help="List the presets and exit."),
+) -> None:
+    """Render piecewise-planar scenes from cameras with viewing angles up to 80+ degrees."""
+    from recon.cli import UserError
+    from scenes.presets import PRESETS, get_preset
+    from scenes.render import render_scene
+
+    console = Console(highlight=False)
+    if list_presets:
+        for p in PRESETS.values():
+            console.print(f"{p.name:15s} {len(p.cameras.azimuths_deg)} views, step {p.azimuth_step:.0f} deg: {p.description}")
+        return
+    try:
+        get_preset(preset)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    scene = render_scene(out_dir, preset, texture or None, seed, overwrite=overwrite)
+    all_angles = [a for d in scene.viewing_angles_deg for a in d.values()]
+    console.print(f"rendered {len(scene.image_paths)} images of '{scene.preset}' into {scene.out_dir}; "
+                  f"viewing angles {min(all_angles):.0f}-{max(all_angles):.0f} deg; ground truth in {scene.out_dir / 'gt'}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("render-scene")(render_command)
