@@ -146,12 +146,12 @@ def render_view(preset: ScenePreset, texs: list[NDArray[np.uint8]], cam_from_wor
 
 
 def rotmat_to_qvec(R: NDArray) -> NDArray[np.float64]:
-    """COLMAP's (qw, qx, qy, qz) of a rotation matrix, qw >= 0."""
+    """COLMAP's (qw, qx, qy, qz) of a rotation matrix, qw >= 0 (its `rotmat2qvec`, lower triangle)."""
     K = np.array([
         [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
         [R[1, 0] + R[0, 1], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
         [R[2, 0] + R[0, 2], R[2, 1] + R[1, 2], R[2, 2] - R[0, 0] - R[1, 1], 0],
-        [R[1, 2] - R[2, 1], R[2, 0] - R[0, 2], R[0, 1] - R[1, 0], R[0, 0] + R[1, 1] + R[2, 2]],
+        [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
     ]) / 3.0
     vals, vecs = np.linalg.eigh(K)
     q = vecs[[3, 0, 1, 2], np.argmax(vals)]
