@@ -59,20 +59,25 @@ class FineMatches:
     per_view: dict[str, int]
 
 
-def select_fine_views(ranked: list[CoarseScore], k: int) -> list[ViewParams]:
-    """The `k` best distinct views for the fine stage, best first.
+def select_fine_views(ranked: list[CoarseScore], k: int, include_original: bool = False) -> list[ViewParams]:
+    """The `k` best distinct views for the fine stage, best first (+ the original if asked).
 
     At t = 1 a view is the original rotated by phi (and zoomed by s = 1): SIFT is rotation
     invariant, so every t = 1 view is replaced by the original itself, whose SIFT is already
-    cached, and counted once.
+    cached, and counted once. `include_original` adds the original when the top `k` lack it:
+    its keypoints are the same in every pair of the image (tracks longer than two views) and
+    cover the surfaces the best views do not rectify.
     """
+    identity = ViewParams(1.0, 0.0, 1.0)
     out: list[ViewParams] = []
     for c in ranked:
-        v = ViewParams(1.0, 0.0, 1.0) if c.view.t == 1.0 else c.view
+        v = identity if c.view.t == 1.0 else c.view
         if v not in out:
             out.append(v)
         if len(out) == k:
             break
+    if include_original and identity not in out:
+        out.append(identity)
     return out
 
 

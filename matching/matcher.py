@@ -36,6 +36,8 @@ class MatcherConfig:
     pairs, benchmarks); the multi-view pipeline turns it off and leaves verification to COLMAP.
     `verify`: the model that counts verified inliers for the escalation decision ("auto" =
     homography when `final_homography`, else fundamental matrix).
+    `fine_include_original`: also fine-match the unwarped originals (multi-view: shared
+    keypoints across pairs, matches on every surface, not only the one the best view rectifies).
     `final_ransac_px`: 1.5 px keeps precision above 96 % on graf; 3 px (OpenCV's default)
     admits SIFT localisation errors of 2-3 px that the sqrt(3) px precision test rejects.
     `guided`: after the homography, re-match the fine views' keypoints only against target
@@ -54,6 +56,7 @@ class MatcherConfig:
     fine: FineConfig = field(default_factory=FineConfig)
     escalation: EscalationConfig = field(default_factory=EscalationConfig)
     fine_top_k: int = 2
+    fine_include_original: bool = False
     final_homography: bool = True
     final_ransac_px: float = 1.5
     guided: bool = True
@@ -75,10 +78,11 @@ class MatcherConfig:
     @staticmethod
     def multiview() -> "MatcherConfig":
         """For `recon run`: no final homography (COLMAP verifies with F / E; the escalation
-        trigger counts fundamental-matrix inliers) and only the cheap escalation levels
+        trigger counts fundamental-matrix inliers), the originals always fine-matched too
+        (keypoints shared by all pairs of an image form long tracks), and only the cheap escalation levels
         (`topk`, `swap`): in exhaustive matching most weak pairs simply do not overlap, and the
         two-sided levels cost 5-30 s each on them."""
-        return MatcherConfig(final_homography=False,
+        return MatcherConfig(final_homography=False, fine_include_original=True,
                              escalation=EscalationConfig(pairs=False, two_sided=False))
 
     @staticmethod
@@ -139,7 +143,7 @@ class ExtraAffineMatcher:
     # ------------------------------------------------------------------------------------------
     def _attempt(self, store: FeatureStore, names: tuple[str, str], ref: int,
                  scores: list[CoarseScore], top_k: int, label: str) -> Attempt:
-        views = select_fine_views(rank_views(scores), top_k)
+        views = select_fine_views(rank_views(scores), top_k, self.cfg.fine_include_original)
         fm = fine_match(store, names[ref], names[1 - ref], views, self.cfg.fine, self._pool)
         n_verified, _ = verify_matches(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]],
                                        self.cfg.verify_model, self.cfg.seed)

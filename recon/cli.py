@@ -57,10 +57,19 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # click usage errors and friends
         import click
 
-        if isinstance(e, click.exceptions.ClickException):
+        # recent typer (0.29 here) vendors click as `typer._click`, whose exceptions do not derive
+        # from click's: check both, or every usage error becomes a traceback with exit 1
+        mods = [click.exceptions]
+        try:
+            from typer._click import exceptions as typer_click_exceptions
+
+            mods.append(typer_click_exceptions)
+        except ImportError:
+            pass
+        if any(isinstance(e, m.ClickException) for m in mods):
             e.show()
             return e.exit_code
-        if isinstance(e, click.exceptions.Abort):
+        if any(isinstance(e, m.Abort) for m in mods):
             print("recon: aborted", file=sys.stderr)
             return 130
         raise

@@ -10,11 +10,11 @@ from rich.console import Console
 
 
 def render_command(
-    out_dir: Path = typer.Argument(..., help="Folder to write images/ and gt/ into."),
+    out_dir: Optional[Path] = typer.Argument(None, help="Folder to write images/ and gt/ into.", show_default=False),
     preset: str = typer.Option("corner", "--preset", help="Scene preset (see --list-presets)."),
     texture: Optional[list[Path]] = typer.Option(None, "--texture", help="Photo(s) to texture the planes with (repeatable)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the procedural textures and sensor noise."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing scene in OUT_DIR."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT_DIR/images and OUT_DIR/gt (nothing else)."),
     list_presets: bool = typer.Option(False, "--list-presets", help="List the presets and exit."),
 ) -> None:
     """Render piecewise-planar scenes from cameras with viewing angles up to 80+ degrees."""
@@ -27,6 +27,8 @@ def render_command(
         for p in PRESETS.values():
             console.print(f"{p.name:15s} {len(p.cameras.azimuths_deg)} views, step {p.azimuth_step:.0f} deg: {p.description}")
         return
+    if out_dir is None:
+        raise UserError("missing OUT_DIR (the folder to write images/ and gt/ into)")
     try:
         get_preset(preset)
     except ValueError as e:

@@ -9,7 +9,8 @@ the ground truth is written in COLMAP's text format and convention (centre at (0
 cx = width / 2), with poses as cam_from_world (x right, y down, z forward).
 
 Everything is written into a temporary folder beside OUT_DIR and renamed into place, so an
-interrupted render never leaves half a scene. Same preset + seed = byte-identical files.
+interrupted render never leaves half a scene; `--overwrite` replaces OUT_DIR/images and
+OUT_DIR/gt only, never other files in OUT_DIR. Same preset + seed = byte-identical files.
 """
 
 from __future__ import annotations
@@ -176,13 +177,50 @@ def write_colmap_gt(gt_dir: Path, preset: ScenePreset, names: list[str], poses: 
     (gt_dir / "images.txt").write_text("\n".join(lines) + "\n")
 
 
+
+def _non_empty_dir(path: Path) -> bool:
+    return path.is_dir() and any(path.iterdir())
+
+
+def _swap_into_place(tmp: Path, out_dir: Path, parts: tuple[str, ...]) -> None:
+    """Move `tmp/<part>` to `out_dir/<part>` for each part, replacing only those subfolders.
+
+    Other files in OUT_DIR (notes, a reconstruction) are never touched. Old parts are first
+    renamed aside, so every step is a rename; `gt` goes before `images`, so an interruption
+    leaves at worst new ground truth beside old images -- which the images/ check still guards.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    trash = tmp / ".old"
+    trash.mkdir()
+    for part in parts:
+        dst = out_dir / part
+        if dst.exists() or dst.is_symlink():
+            os.replace(dst, trash / part)
+        os.replace(tmp / part, dst)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+def _render_into(tmp: Path, p: ScenePreset, texs: list[NDArray[np.uint8]], names: list[str],
+                 poses: list[NDArray], rng: np.random.Generator) -> list[dict[str, float]]:
+    """Render every view into `tmp/images` as PNG; the per-view viewing angles (deg)."""
+    (tmp / "images").mkdir(parents=True)
+    angles = []
+    for name, P in zip(names, poses):
+        img, ang = render_view(p, texs, P, rng)
+        ok, buf = cv2.imencode(".png", img)
+        if not ok:
+            raise RuntimeError(f"PNG encoding failed for {name}")
+        (tmp / "images" / name).write_bytes(buf.tobytes())
+        angles.append(ang)
+    return angles
+
+
 def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: list[Path] | None = None,
                  seed: int = 0, image_size: tuple[int, int] | None = None,
                  overwrite: bool = False) -> RenderedScene:
     """Render `preset` into OUT_DIR/images and OUT_DIR/gt (see module doc).
 
-    Raises ValueError for an unknown preset, InputError for a missing texture or an existing
-    scene in OUT_DIR without `overwrite`.
+    Raises ValueError for an unknown preset, InputError for a missing texture or a non-empty
+    OUT_DIR/images without `overwrite` (which replaces images/ and gt/ only).
     """
     out_dir = Path(out_dir)
     p = get_preset(preset)
@@ -190,8 +228,10 @@ def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: li
         scale = image_size[0] / p.image_size[0]
         p = ScenePreset(p.name, p.description, p.planes, p.cameras, tuple(image_size), p.focal_px * scale,
                         p.px_per_m * max(1.0, scale) if scale > 1 else p.px_per_m, p.noise_sigma)
-    if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
-        raise InputError(f"{out_dir}: folder is not empty; pass --overwrite to replace it")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"{out_dir}: exists and is not a folder")
+    if _non_empty_dir(out_dir / "images") and not overwrite:
+        raise InputError(f"{out_dir / 'images'}: folder is not empty; pass --overwrite to replace the scene")
     texs = _textures(p, [Path(t) for t in textures] if textures else None, seed)
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5CE7E])
     K = intrinsics(p)
@@ -201,25 +241,21 @@ def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: li
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_dir.parent / f".{out_dir.name}.rendering.{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "images").mkdir(parents=True)
-    angles = []
-    for name, P in zip(names, poses):
-        img, ang = render_view(p, texs, P, rng)
-        ok, buf = cv2.imencode(".png", img)
-        (tmp / "images" / name).write_bytes(buf.tobytes())
-        angles.append(ang)
-    write_colmap_gt(tmp / "gt", p, names, poses)
-    meta = {
-        "preset": p.name, "description": p.description, "seed": seed, "image_size": list(p.image_size),
-        "focal_px": p.focal_px, "azimuths_deg": list(p.cameras.azimuths_deg), "azimuth_step_deg": p.azimuth_step,
-        "textures": [str(t) for t in textures] if textures else "procedural",
-        "planes": [{"name": pl.name, "corners_m": pl.corners().round(6).tolist(),
-                    "normal": pl.normal.round(6).tolist()} for pl in p.planes],
-        "viewing_angles_deg": dict(zip(names, angles)),
-        "max_viewing_angle_deg": max((max(a.values()) for a in angles if a), default=0.0),
-    }
-    (tmp / "gt" / "scene.json").write_text(json.dumps(meta, indent=2))
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    os.replace(tmp, out_dir)
+    try:
+        angles = _render_into(tmp, p, texs, names, poses, rng)
+        write_colmap_gt(tmp / "gt", p, names, poses)
+        meta = {
+            "preset": p.name, "description": p.description, "seed": seed, "image_size": list(p.image_size),
+            "focal_px": p.focal_px, "azimuths_deg": list(p.cameras.azimuths_deg), "azimuth_step_deg": p.azimuth_step,
+            "textures": [str(t) for t in textures] if textures else "procedural",
+            "planes": [{"name": pl.name, "corners_m": pl.corners().round(6).tolist(),
+                        "normal": pl.normal.round(6).tolist()} for pl in p.planes],
+            "viewing_angles_deg": dict(zip(names, angles)),
+            "max_viewing_angle_deg": max((max(a.values()) for a in angles if a), default=0.0),
+        }
+        (tmp / "gt" / "scene.json").write_text(json.dumps(meta, indent=2))
+        _swap_into_place(tmp, out_dir, ("gt", "images"))
+    except BaseException:  # Ctrl-C or an error mid-render: leave no temporary folder behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return RenderedScene(out_dir, p.name, [out_dir / "images" / n for n in names], K, poses, angles)

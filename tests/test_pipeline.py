@@ -22,6 +22,7 @@ import pytest
 
 from recon.cli import main
 from recon.pipeline import RunConfig, run_scene
+from scenes.render import render_scene
 
 DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 needs_data = pytest.mark.skipif(not (DATA / "oxford" / "graf" / "img1.png").is_file(),
@@ -33,68 +34,14 @@ REPORT_KEYS = {"num_images", "registered_images", "num_points3D", "mean_track_le
 
 
 # a small rendered 3D scene --------------------------------------------------------------------
-def _textures() -> list[np.ndarray]:
-    out = []
-    for rel in ("oxford/graf/img1.png", "hpatches/v_dogman/1.png", "evd/1/cafe.png"):
-        p = DATA / rel
-        t = cv2.imread(str(p)) if p.is_file() else None
-        if t is None:  # fall back to rotated copies of graf
-            t = np.rot90(cv2.imread(str(DATA / "oxford/graf/img1.png")), len(out)).copy()
-        s = min(t.shape[:2])
-        out.append(cv2.resize(t[:s, :s], (640, 640), interpolation=cv2.INTER_AREA))
-    return out
-
-
-def _look_at(C: np.ndarray, target) -> tuple[np.ndarray, np.ndarray]:
-    f = np.asarray(target, float) - C
-    f /= np.linalg.norm(f)
-    r = np.cross(f, (0, 0, 1.0))
-    r /= np.linalg.norm(r)
-    R = np.stack([r, np.cross(f, r), f])
-    return R, -R @ C
-
-
-def render_corner(out_dir: Path, n: int = 5, sizes=None) -> list[str]:
-    """A concave corner (floor + two walls, 2 x 2 units, textured with real photos) seen by n
-    cameras on an arc: a real 3D scene (three planes, so not one homography) without occlusions.
-    Each plane is drawn with its exact plane-to-image homography K [R u, R v, R o + t]."""
-    tex = _textures()
-    planes = [(np.array([1, 0, 0.]), np.array([0, 1, 0.])),  # floor z = 0
-              (np.array([0, 1, 0.]), np.array([0, 0, 1.])),  # wall x = 0
-              (np.array([1, 0, 0.]), np.array([0, 0, 1.]))]  # wall y = 0
-    img_dir = out_dir / "images"
-    img_dir.mkdir(parents=True, exist_ok=True)
-    names = []
-    for i in range(n):
-        W, H = (sizes[i] if sizes else SIZE)
-        f = 560.0 * W / 640.0
-        K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
-        az, el = np.deg2rad(25 + 40 * i / max(1, n - 1)), np.deg2rad(35)
-        C = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)]) * 4.2
-        R, t = _look_at(C, (0.75, 0.75, 0.6))
-        img = np.zeros((H, W, 3), np.uint8)
-        for (u, v), T in zip(planes, tex):
-            S = T.shape[0]
-            Hm = K @ np.stack([R @ u * (2.0 / S), R @ v * (2.0 / S), t], 1)
-            warped = cv2.warpPerspective(T, Hm, (W, H), flags=cv2.INTER_LINEAR)
-            mask = cv2.warpPerspective(np.full((S, S), 255, np.uint8), Hm, (W, H), flags=cv2.INTER_NEAREST)
-            img[mask > 0] = warped[mask > 0]
-        name = f"view_{i:02d}.png"
-        cv2.imwrite(str(img_dir / name), img)
-        names.append(name)
-    return names
-
-
-def make_scene(out_dir: Path, n: int = 5) -> Path:
-    """The other helper's `scenes.render.render_scene` when it exists, else `render_corner`."""
-    try:
-        from scenes.render import render_scene  # type: ignore[import-not-found]
-    except ImportError:
-        render_scene = None
-    if render_scene is not None and n == 5:
-        render_scene(out_dir, preset="corner", seed=0, image_size=SIZE)
-    else:
-        render_corner(out_dir, n)
+def make_scene(out_dir: Path, preset: str = "corner", sizes: list[tuple[int, int]] | None = None) -> Path:
+    """The project's rendered building corner (procedural textures, offline), optionally with
+    some images resized to other sizes."""
+    scene = render_scene(out_dir, preset=preset, seed=0, image_size=SIZE)
+    for path, size in zip(scene.image_paths, sizes or []):
+        if tuple(size) != SIZE:
+            img = cv2.imread(str(path))
+            cv2.imwrite(str(path), cv2.resize(img, size, interpolation=cv2.INTER_AREA))
     return out_dir
 
 
@@ -110,8 +57,6 @@ def _run(scene: Path, out: Path, **kw):
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
-    if not (DATA / "oxford" / "graf" / "img1.png").is_file():
-        pytest.skip(f"shared test data not found at {DATA}")
     return make_scene(tmp_path_factory.mktemp("corner") / "scene")
 
 
@@ -160,6 +105,25 @@ def test_end_to_end_registers_every_image(first_run):
     import open3d as o3d
 
     assert len(o3d.io.read_point_cloud(str(out / "points.ply")).points) == rep.num_points3D
+
+
+def test_extra_affine_reconstructs_the_wide_corner_close_to_ground_truth(tmp_path):
+    """The default method on 4 views 29 deg apart with viewing angles to ~80 deg."""
+    from recon.evaluate import evaluate_model
+    from recon.gt import find_gt
+
+    scene = make_scene(tmp_path / "wide", preset="corner-wide")
+    out = tmp_path / "out"
+    rep = run_scene(scene, RunConfig(out=out, progress=False))  # method: extra-affine
+    assert rep.ok and rep.registered_images == rep.num_images == 4
+    rec = pycolmap.Reconstruction()
+    rec.read(str(out / "sparse" / "0"))
+    ev = evaluate_model(rec, find_gt(scene))
+    assert ev["rel_rot_err_deg_median"] < 0.5
+    assert ev["center_err_rel_median"] < 0.01
+    data = json.loads((out / "report.json").read_text())
+    assert all(p["reference"] in (p["image0"], p["image1"]) for p in data["pairs"])
+    assert any(p["best_view"] and p["best_view"]["t"] > 1.0 for p in data["pairs"])  # tilted views used
 
 
 @needs_data
@@ -317,8 +281,7 @@ def test_cli_junk_corrupt_and_duplicate_files_are_skipped(scene, tmp_path, capsy
 @needs_data
 def test_cli_spaces_non_ascii_and_different_sizes(tmp_path, capsys):
     d = tmp_path / "scène avec espaces"
-    sizes = [SIZE, SIZE, (400, 300), SIZE, (560, 420)]
-    render_corner(d, 5, sizes=sizes)
+    make_scene(d, sizes=[SIZE, SIZE, (400, 300), SIZE, (560, 420)])
     for i, p in enumerate(sorted((d / "images").iterdir())):
         p.rename(p.with_name(f"vue n°{i} é.png"))
     rc, _, err = _cli(capsys, d)  # default --out inside the scene

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from matching.errors import InputError
 from recon.cli import main
 from recon.gt import read_colmap_text
 from scenes.presets import PRESETS, get_preset
@@ -105,3 +106,77 @@ def test_cli_renders_and_rejects_bad_input(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "missing.jpg" in err and "Traceback" not in err
     assert not (tmp_path / "y").exists()  # nothing half-written
+
+
+def test_pixels_match_the_ground_truth_to_a_fraction_of_a_pixel(tmp_path):
+    """A 4x4-texel dot at the exact centre of a wall-shaped photo (12 m x 5 m walls = 2.4:1, so
+    no crop) lands where gt/ projects the wall centre, within 0.25 px: a half-pixel slip between
+    the renderer's OpenCV convention and COLMAP's (cx = w/2) would fail this."""
+    tex = np.zeros((200, 480, 3), np.uint8)
+    tex[98:102, 238:242] = 255  # centred on (239.5, 99.5), the photo's centre
+    tex_path = tmp_path / "dot.png"
+    cv2.imwrite(str(tex_path), tex)
+    scene = render_scene(tmp_path / "s", "corner", textures=[tex_path], seed=0, image_size=SMALL)
+    gt = read_colmap_text(scene.out_dir / "gt")
+    walls = get_preset("corner").planes[:2]
+    checked = 0
+    for path in scene.image_paths:
+        cam = gt[path.name]
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(float)
+        ys, xs = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+        for wall in walls:
+            x = cam.K @ (cam.cam_from_world[:, :3] @ wall.centre + cam.cam_from_world[:, 3])
+            u, v = x[:2] / x[2]
+            near = (np.hypot(xs - u, ys - v) < 6) & (img > 12)
+            w = img[near] - 12
+            if w.sum() < 100:  # dot hidden or too foreshortened in this view
+                continue
+            assert abs((xs[near] * w).sum() / w.sum() - u) < 0.25, path.name
+            assert abs((ys[near] * w).sum() / w.sum() - v) < 0.25, path.name
+            checked += 1
+    assert checked >= 8
+
+
+def test_overwrite_replaces_only_images_and_gt(tmp_path):
+    out = tmp_path / "scene"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    render_scene(out, "corner-wide", seed=0, image_size=SMALL)  # a non-empty OUT_DIR is fine
+    (out / "images" / "stale.png").write_bytes(b"x")
+    with pytest.raises(InputError, match="--overwrite"):
+        render_scene(out, "corner-wide", seed=1, image_size=SMALL)
+    render_scene(out, "corner-wide", seed=1, image_size=SMALL, overwrite=True)
+    assert (out / "notes.txt").read_text() == "keep me"
+    assert not (out / "images" / "stale.png").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no temporary folder left
+
+
+def test_an_interrupted_render_leaves_the_old_scene_and_no_temporary_folder(tmp_path, monkeypatch):
+    import scenes.render as render
+
+    out = tmp_path / "scene"
+    first = render_scene(out, "corner-wide", seed=0, image_size=SMALL)
+    before = _digest(first)
+    calls = []
+
+    def interrupted(*args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    real = render.render_view
+    monkeypatch.setattr(render, "render_view", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        render_scene(out, "corner-wide", seed=5, image_size=SMALL, overwrite=True)
+    assert _digest(first) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+
+
+def test_cli_lists_presets_without_an_out_dir(capsys):
+    assert main(["render-scene", "--list-presets"]) == 0
+    listed = capsys.readouterr().out
+    assert all(name in listed for name in PRESETS)
+    assert main(["render-scene"]) == 2
+    err = capsys.readouterr().err
+    assert "OUT_DIR" in err and len(err.strip().splitlines()) == 1
