@@ -35,9 +35,12 @@ def to_jsonable(x: Any) -> Any:
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:
-    """Write JSON to a temporary file beside `path`, then rename it into place."""
+    """Write JSON (numpy-safe, UTF-8) to `.<name>.tmp-<pid>` beside `path`, fsync, rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(to_jsonable(data), indent=2), encoding="utf-8")
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(to_jsonable(data), f, indent=1, ensure_ascii=False, default=str)
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(tmp, path)

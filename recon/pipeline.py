@@ -267,8 +267,9 @@ def _check_writable(out: Path, default_out: bool) -> None:
         raise UserError(f"cannot write to {out}: {e.strerror or e}; {hint}") from None
 
 
-def _remove_own_outputs(out: Path) -> None:
-    for name in OWN_OUTPUTS:
+def remove_outputs(out: Path, names: tuple[str, ...] = OWN_OUTPUTS) -> None:
+    """Delete the named outputs in `out` and the temporary leftovers of killed runs, nothing else."""
+    for name in names:
         p = out / name
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
@@ -305,7 +306,7 @@ def prepare_out(out: Path, root: Path, candidates: list[str], overwrite: bool, d
                                 f"(found {stray[0]}); choose another --out")
     _check_writable(out, default_out)
     if overwrite:
-        _remove_own_outputs(out)
+        remove_outputs(out)
     write_json_atomic(marker, {"scene": str(root), "image_dir": str(find_image_dir(root)), "images": candidates})
 
 

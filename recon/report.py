@@ -25,6 +25,8 @@ Files are written to a temporary name and `os.replace`d, so a kill never leaves 
 
 from __future__ import annotations
 
+from .jsonio import write_json_atomic  # noqa: F401  (re-exported: pipeline, stock)
+
 import json
 import os
 from dataclasses import asdict, dataclass, field
@@ -86,16 +88,6 @@ class RunReport:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def write_json_atomic(path: str | Path, data: Any) -> None:
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=1, ensure_ascii=False, default=str)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def write_report(report: RunReport, path: str | Path) -> None:

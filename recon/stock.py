@@ -57,7 +57,7 @@ from .bench_pairs import PeakRss
 from .cli import UserError
 from .database import CAMERA_MODES, import_scene_images, read_verified
 from .pairs import make_pairs, parse_pairs_spec
-from .pipeline import _quiet_colmap, _Stages
+from .pipeline import _quiet_colmap, _Stages, remove_outputs
 from .report import PairRow, RunReport, write_json_atomic
 from .scene import scan_scene
 from .tracks import track_stats
@@ -112,17 +112,7 @@ def options_summary(eo: pycolmap.FeatureExtractionOptions, mo: pycolmap.FeatureM
 
 # helpers ----------------------------------------------------------------------------------------
 def _remove_own_outputs(out: Path) -> None:
-    for name in STOCK_OUTPUTS:
-        p = out / name
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p, ignore_errors=True)
-        elif p.exists() or p.is_symlink():
-            p.unlink()
-    for p in out.glob(".*tmp-*"):  # leftovers of a killed run (.sfm-tmp-<pid>, .0.tmp-<pid>, ...)
-        if p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
+    remove_outputs(out, STOCK_OUTPUTS)
 
 
 def _write_pairs_file(path: Path, pairs: list[tuple[str, str]]) -> tuple[list[tuple[str, str]], list[str]]:
