@@ -216,6 +216,10 @@ def make_table(results: list[dict[str, Any]], max_size: int):
 def main(argv: list[str] | None = None) -> int:
     from rich.console import Console
 
+    from matching.memory import return_large_buffers_to_os
+
+    return_large_buffers_to_os()  # as the recon CLI does
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("root", nargs="?", type=Path, default=None,

@@ -37,6 +37,9 @@ def _register_commands() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from matching.memory import return_large_buffers_to_os
+
+    return_large_buffers_to_os()
     _register_commands()
     try:
         # with standalone_mode=False click returns the code of `typer.Exit(n)` (and of an
