@@ -168,16 +168,16 @@ class ExtraAffineMatcher:
         out = {first: coarse_search(store, names[first], names[1 - first], self.views, cfg.coarse, self._pool)}
         best = rank_views(out[first])[0]
         if best.inliers >= cfg.coarse.accept_inliers // 2 and best.H_target_from_ref is not None:
-            h, w = store.image(names[first]).shape[:2]
-            area = local_scale(best.H_target_from_ref, ((w - 1) / 2.0, (h - 1) / 2.0))
+            H = best.H_target_from_ref
+            H_1_from_0 = H if first == 0 else np.linalg.inv(H)
+            h, w = store.image(names[0]).shape[:2]
+            area = local_scale(H_1_from_0, ((w - 1) / 2.0, (h - 1) / 2.0))  # as the ground truth
             lin = math.sqrt(area) if math.isfinite(area) and area > 0 else 1.0
-            if lin > cfg.reference.scale_tolerance:
-                chosen = 1 - first
-                out[chosen] = coarse_search(store, names[chosen], names[first], self.views, cfg.coarse, self._pool)
-            else:
-                chosen = first
+            chosen = first if abs(math.log(lin)) < math.log(cfg.reference.scale_tolerance) else (0 if lin < 1 else 1)
+            if chosen not in out:
+                out[chosen] = coarse_search(store, names[chosen], names[1 - chosen], self.views, cfg.coarse, self._pool)
             decision.reference = chosen
-            decision.reason += (f"; coarse view geometry: image {first} maps {lin:.2f}x into image {1 - first}, "
+            decision.reason += (f"; coarse view geometry: image 0 maps {lin:.2f}x into image 1 at its centre, "
                                 f"so image {chosen} is the reference")
             return out
         second = 1 - first
@@ -194,7 +194,7 @@ class ExtraAffineMatcher:
         t = time.perf_counter()
         feats = list(self._pool.map(lambda n: original_features(store, n, sift), names)) if self._pool \
             else [original_features(store, n, sift) for n in names]
-        decision = choose_reference(feats[0], feats[1], cfg.reference)
+        decision = choose_reference(feats[0], feats[1], cfg.reference, store.image(name0).shape[1::-1])
         timings["reference"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -225,6 +225,8 @@ class ExtraAffineMatcher:
                 result.reason = "no homography fits the matches"
         if cfg.guided and result.H_1_from_0 is not None and best.views:
             result = self._guided(store, names, best, result)
+        if result.escalation in ("pairs", "two-sided") and result.H_1_from_0 is not None:
+            result = self._reference_from_final_h(store, names, result)
         timings["ransac"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_start
         result.timings = timings
@@ -277,6 +279,19 @@ class ExtraAffineMatcher:
             return res
         out.H_1_from_0, out.inlier_mask = H, inl
         return out
+
+    def _reference_from_final_h(self, store: FeatureStore, names: tuple[str, str], res: PairResult) -> PairResult:
+        """Two-sided levels simulate both images, so neither was "the" reference: report the
+        one the verified final homography says is more detailed (scale at image 0's centre)."""
+        h, w = store.image(names[0]).shape[:2]
+        area = local_scale(res.H_1_from_0, ((w - 1) / 2.0, (h - 1) / 2.0))
+        if not (math.isfinite(area) and area > 0) or res.num_inliers < self.cfg.escalation.min_inliers:
+            return res
+        lin = math.sqrt(area)
+        ref = 0 if lin <= 1.0 else 1
+        res.reference = ref  # type: ignore[assignment]
+        res.reference_reason += f"; both images simulated, final homography: image {ref} is {max(lin, 1 / lin):.2f}x larger"
+        return res
 
     def _to_result(self, store: FeatureStore, names: tuple[str, str], att: Attempt, decision) -> PairResult:
         fm = att.fine
