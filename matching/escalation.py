@@ -57,6 +57,10 @@ class EscalationConfig:
     `min_inliers`: a pair escalates while its best attempt has fewer verified matches (RANSAC
     homography inliers at 3 px, or F-matrix inliers) than this, or when the verified model is
     implausible (`verify.plausible_homography`).
+    `min_coarse_inliers`: escalate only when some coarse view reached this many ORB RANSAC
+    inliers, i.e. the images visibly overlap (0 = always; EVD cafe has no ORB signal at all,
+    so the pair benchmark keeps 0, while `recon run` uses 15: in exhaustive matching most
+    weak pairs simply do not overlap).
     `top_k`: views the `topk` level fuses (skipped when not above the fast path's `fine_top_k`).
     `pairs`: the two-sided view-pair level. Every view of one image is paired with every view
     of the other (the main grid on both sides); each pair is scored with the `pair_orb`
@@ -72,6 +76,7 @@ class EscalationConfig:
     """
 
     enabled: bool = True
+    min_coarse_inliers: int = 0
     min_inliers: int = 30
     top_k: int = 4
     swap: bool = True

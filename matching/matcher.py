@@ -79,11 +79,12 @@ class MatcherConfig:
     def multiview() -> "MatcherConfig":
         """For `recon run`: no final homography (COLMAP verifies with F / E; the escalation
         trigger counts fundamental-matrix inliers), the originals always fine-matched too
-        (keypoints shared by all pairs of an image form long tracks), and only the cheap escalation levels
+        (keypoints shared by all pairs of an image form long tracks), and only the cheap escalation levels,
+        and only for pairs whose coarse search found some overlap (>= 15 ORB inliers in a view)
         (`topk`, `swap`): in exhaustive matching most weak pairs simply do not overlap, and the
         two-sided levels cost 5-30 s each on them."""
         return MatcherConfig(final_homography=False, fine_include_original=True,
-                             escalation=EscalationConfig(pairs=False, two_sided=False))
+                             escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15))
 
     @staticmethod
     def from_overrides(**kw) -> "MatcherConfig":
@@ -208,7 +209,9 @@ class ExtraAffineMatcher:
         timings["fine"] = time.perf_counter() - t
 
         escalation_label = ""
-        if cfg.escalation.enabled and best.verified < cfg.escalation.min_inliers:
+        coarse_evidence = max((c.inliers for scores in coarse.values() for c in scores), default=0)
+        if (cfg.escalation.enabled and best.verified < cfg.escalation.min_inliers
+                and coarse_evidence >= cfg.escalation.min_coarse_inliers):
             t = time.perf_counter()
             best = escalate(self, store, names, best, coarse)
             escalation_label = best.label
