@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields, replace
@@ -138,8 +139,19 @@ class ExtraAffineMatcher:
     def __init__(self, cfg: MatcherConfig | None = None):
         self.cfg = cfg or MatcherConfig()
         self.views = view_grid(self.cfg.grid)
-        n = self.cfg.workers or os.cpu_count() or 1
-        self._pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="views") if n > 1 else None
+        self._threads = self.cfg.workers or os.cpu_count() or 1
+        self._pool_obj: ThreadPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
+
+    @property
+    def _pool(self) -> ThreadPoolExecutor | None:
+        """The view thread pool, created on first use (None with `workers` = 1)."""
+        if self._threads <= 1:
+            return None
+        with self._pool_lock:
+            if self._pool_obj is None:
+                self._pool_obj = ThreadPoolExecutor(max_workers=self._threads, thread_name_prefix="views")
+            return self._pool_obj
 
     # ------------------------------------------------------------------------------------------
     def _attempt(self, store: FeatureStore, names: tuple[str, str], ref: int,
@@ -156,9 +168,9 @@ class ExtraAffineMatcher:
 
         With an undecided reference (the originals barely match), the side Eq. 1 prefers is
         searched first. If its best view is verified (>= `coarse.accept_inliers` / 2 inliers),
-        that view's homography gives the relative scale at the reference's centre, the same
-        quantity the ground truth uses: when it says the other image is >10 % larger, the
-        other side becomes the reference. With no verified view, both sides are searched and
+        that view's homography gives the relative scale at image 0's centre, the quantity the
+        ground truth uses: the larger image (by > `reference.scale_tolerance`) becomes the
+        reference, and the first side stays when the scales are about equal. With no verified view, both sides are searched and
         the better best view wins. `decision` is updated in place with the outcome.
         """
         cfg = self.cfg
@@ -315,5 +327,6 @@ class ExtraAffineMatcher:
         return res
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False)
+        if self._pool_obj is not None:
+            self._pool_obj.shutdown(wait=False)
+            self._pool_obj = None

@@ -79,3 +79,17 @@ def test_antialias_blur_only_where_the_view_shrinks():
     soft = simulate(img, ViewParams(4.0, 0.0, 1.0), "linear", antialias=True).image
     assert sharp.shape == soft.shape
     assert soft[10:-10, 5:-5].std() < sharp[10:-10, 5:-5].std()  # blur removes aliased noise
+
+
+def test_fine_views_skip_rotation_duplicates_and_can_add_the_original():
+    from matching.fine import select_fine_views
+    from matching.types import CoarseScore
+
+    def score(t, phi, n):
+        return CoarseScore(ViewParams(t, phi, 1.0), n, n, float(n))
+
+    ranked = [score(1.0, 72.0, 90), score(1.0, 0.0, 80), score(2.0, 36.0, 70), score(4.0, 18.0, 60)]
+    assert select_fine_views(ranked, 2) == [ViewParams(1.0, 0.0, 1.0), ViewParams(2.0, 36.0, 1.0)]
+    tilted = ranked[2:]
+    assert select_fine_views(tilted, 1, include_original=True) == [ViewParams(2.0, 36.0, 1.0),
+                                                                   ViewParams(1.0, 0.0, 1.0)]
