@@ -26,7 +26,15 @@ class UserError(Exception):
     """A problem the user can fix (bad arguments, refused output folder); printed on one line."""
 
 
+_registered = False
+
+
 def _register_commands() -> None:
+    """Import every `recon/cmd_*.py` and let it add its command(s), once per process."""
+    global _registered
+    if _registered:
+        return
+    _registered = True
     import importlib
     import pkgutil
 
