@@ -1,4 +1,5 @@
-"""`recon bench ...`: benchmarks. `recon bench pairs DATA_ROOT` runs the GT-homography pair benchmark."""
+"""`recon bench ...`: benchmarks. `recon bench pairs DATA_ROOT` runs the GT-homography pair benchmark;
+`recon bench scenes ROOT` runs `recon compare` on every scene under ROOT (see `recon.compare`)."""
 
 from __future__ import annotations
 
@@ -73,6 +74,42 @@ def pairs_cmd(
     print_report(rows, th=th)
     if json_out is not None:
         typer.echo(f"wrote {len(rows)} rows to {json_out}")
+
+
+@bench_app.command("scenes")
+def scenes_cmd(
+    root: Annotated[Path, typer.Argument(help="Folder of scene folders (photos in <scene>/images/ or at its "
+                                              "top level, optional ground truth in <scene>/gt/).")],
+    stock_presets: Annotated[str, typer.Option("--stock-presets", help="Comma-separated: default, high.")]
+        = "default",
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Write every scene's comparison to this "
+                                                                   "JSON file.")] = None,
+    scenes: Annotated[Optional[str], typer.Option("--scenes", help="Comma-separated scene names (default: all).")]
+        = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Outputs: OUT/<scene>/{stock-*,extra_affine} "
+                                                              "(default: out/bench-scenes).")] = None,
+    max_size: Annotated[int, typer.Option("--max-size", help="Working resolution (longer side, px; 0 = full).")]
+        = 1600,
+    pairs: Annotated[str, typer.Option("--pairs", help="Pair selection for both pipelines.")] = "exhaustive",
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+) -> None:
+    """`recon compare` on every scene under ROOT (stock COLMAP vs extra-affine), one summary table."""
+    import sys
+
+    from rich.console import Console
+
+    from .compare import run_scenes, scenes_table
+
+    presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
+    names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
+    root = root.expanduser()
+    out_root = out if out is not None else Path("out") / "bench-scenes"
+    err = Console(stderr=True, highlight=False)
+    results = run_scenes(root, out_root, names, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
+                         json_path=json_out, log=lambda m: err.print(f"recon: {m}", markup=False))
+    Console(width=None if sys.stdout.isatty() else 160).print(scenes_table(results, max_size))
+    if json_out is not None:
+        typer.echo(f"JSON: {json_out}")
 
 
 def register(app: typer.Typer) -> None:
