@@ -79,6 +79,7 @@ def match_command(
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
     variant: str = typer.Option("default", "--variant", help="extra-affine only: 'default' or 'paper' (plain reading)."),
     seed: int = typer.Option(0, "--seed", help="Seed of every RANSAC (results are deterministic per seed)."),
+    rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
 ) -> None:
     """Match two images and report the reference choice, best view, matches and timings."""
     from recon.cli import UserError
@@ -89,6 +90,14 @@ def match_command(
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if variant not in ("default", "paper"):
         raise UserError(f"unknown variant {variant!r}; choose 'default' or 'paper'")
+    from recon.rerun_log import find_viewer, log_single_pair, parse_sink
+
+    try:
+        sink = parse_sink(rerun)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    if sink.kind == "spawn" and find_viewer() is None:
+        raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; use --rerun save:PATH")
     H_gt = read_homography(gt) if gt is not None else None
     gray = [load_gray(img_a), load_gray(img_b)]
     store = FeatureStore()
@@ -110,6 +119,10 @@ def match_command(
     if json_out is not None:
         write_json_atomic(json_out, summary)
         console.print(f"wrote {json_out}")
+    if sink.enabled:
+        saved = log_single_pair(sink, img_a, img_b, result)
+        if saved is not None:
+            console.print(f"wrote {saved}")
 
 
 def register(app: typer.Typer) -> None:

@@ -25,27 +25,57 @@ def register(app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option("--overwrite", help="Delete this tool's outputs in --out and start over.")] = False,
         clean_points: Annotated[bool, typer.Option("--clean-points", help="Drop statistical outliers from points.ply.")] = False,
         progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars on stderr.")] = True,
+        rerun: Annotated[str, typer.Option(
+            "--rerun", help="Rerun recording: save (OUT/recording.rrd, default), save:PATH, spawn (open the "
+                            "viewer), connect[:URL] (stream to a running viewer) or none.")] = "save",
     ) -> None:
         """Match the photos of a scene, write a COLMAP database and reconstruct a sparse model."""
         import sys
 
         from rich.console import Console
 
+        from .cli import UserError
         from .pipeline import RunConfig, run_scene
         from .report import summary_table
+        from .rerun_log import RECORDING_NAME, RerunLogger, find_viewer, parse_sink
+        from .scene import find_image_dir
 
         cfg = RunConfig(out=out, method=method, pairs=pairs, max_size=max_size, camera_mode=camera_mode,
                         merge_px=merge_px, seed=seed, workers=workers, overwrite=overwrite,
                         clean_points=clean_points, progress=progress)
+        # the same output folder run_scene uses; the logger opens its sink lazily, after
+        # run_scene has checked and claimed the folder
+        out_dir = (cfg.out or scene_dir.expanduser() / "recon").resolve()
+        try:
+            sink = parse_sink(rerun, out_dir / RECORDING_NAME)
+        except ValueError as e:
+            raise UserError(str(e)) from None
+        if sink.kind == "spawn" and find_viewer() is None:
+            raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; "
+                            "use --rerun save and open the file elsewhere")
+        image_dir = find_image_dir(scene_dir.expanduser()).resolve()  # InputError for a missing folder
+        logger = RerunLogger(sink, lambda name: image_dir / name) if sink.enabled else None
+        ok = False
         try:
             report = run_scene(scene_dir, cfg,
+                               on_pair=logger.on_pair if logger else None,
+                               on_model=logger.on_model if logger else None,
                                on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
+            ok = True
         except KeyboardInterrupt:
             # typer turns Ctrl-C into a *returned* exit code that `recon.cli.main` does not
             # look at; SystemExit reaches it. Everything written so far is complete (atomic).
             print("recon: interrupted; rerun the same command to resume", file=sys.stderr)
             raise SystemExit(130) from None
+        finally:
+            saved = logger.close(ok) if logger else None
+        stale = out_dir / RECORDING_NAME
+        if overwrite and saved != stale and stale.is_file():  # --overwrite: no recording of an older run
+            stale.unlink()
         Console().print(summary_table(report))
+        if saved is not None:
+            print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "
+                  f"open it with: recon view {saved}", file=sys.stderr)
         if not report.ok:
             print(f"recon: error: {report.message}", file=sys.stderr)
             # SystemExit, not typer.Exit: click (standalone_mode=False) would turn Exit into a

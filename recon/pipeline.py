@@ -55,7 +55,7 @@ from numpy.typing import NDArray
 from matching.errors import InputError
 from matching.registry import METHODS, PairMatcher, get_matcher
 from matching.store import FeatureStore
-from matching.types import PairResult, ViewParams
+from matching.types import CoarseScore, PairResult, ViewParams
 
 from .cli import UserError
 from .database import CAMERA_MODES, build_database, read_verified, two_view_options
@@ -67,7 +67,7 @@ from .tracks import PairMatches, merge_tracks, track_stats
 PAIR_CACHE_VERSION = "1"
 STATE_VERSION = "1"
 SCENE_MARKER = ".recon_scene.json"
-OWN_OUTPUTS = ("cache", "database.db", "database.db.tmp", "database.db-journal", "database.db-wal",
+OWN_OUTPUTS = ("cache", "recording.rrd", "database.db", "database.db.tmp", "database.db-journal", "database.db-wal",
                "database.db-shm", "sparse", "points.ply", "report.json", SCENE_MARKER)
 
 
@@ -181,7 +181,7 @@ def result_to_full_res(r: PairResult, im0: SceneImage, im1: SceneImage) -> PairR
         method=r.method, kpts0=k0, kpts1=k1, matches=mm,
         distances=np.asarray(r.distances, np.float32).reshape(-1), reference=r.reference,
         reference_reason=r.reference_reason, f0=r.f0, f1=r.f1, best_views=list(r.best_views),
-        coarse_scores=[], H_1_from_0=H, inlier_mask=r.inlier_mask, escalation=r.escalation,
+        coarse_scores=r.coarse_scores, H_1_from_0=H, inlier_mask=r.inlier_mask, escalation=r.escalation,
         reason=r.reason, timings=dict(r.timings),
         image_sizes=((im0.width, im0.height), (im1.width, im1.height)),
     )
@@ -191,13 +191,15 @@ def save_pair_result(path: Path, r: PairResult) -> None:
     """Atomic .npz of a (full-resolution, compact) PairResult."""
     path.parent.mkdir(parents=True, exist_ok=True)
     views = np.array([[v.t, v.phi, v.s] for v in r.best_views], np.float64).reshape(-1, 3)
+    coarse = np.array([[c.view.t, c.view.phi, c.view.s, c.matches, c.inliers, c.score]
+                       for c in r.coarse_scores], np.float64).reshape(-1, 6)
     meta = dict(method=r.method, reference=r.reference, reference_reason=r.reference_reason,
                 f0=r.f0, f1=r.f1, escalation=r.escalation, reason=r.reason, timings=r.timings,
                 image_sizes=r.image_sizes, version=PAIR_CACHE_VERSION)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
     np.savez(tmp, kpts0=np.asarray(r.kpts0, np.float32), kpts1=np.asarray(r.kpts1, np.float32),
              matches=np.asarray(r.matches, np.int32), distances=np.asarray(r.distances, np.float32),
-             views=views, H=(np.zeros((0, 3)) if r.H_1_from_0 is None else np.asarray(r.H_1_from_0)),
+             views=views, coarse=coarse, H=(np.zeros((0, 3)) if r.H_1_from_0 is None else np.asarray(r.H_1_from_0)),
              inlier_mask=(np.zeros(0, bool) if r.inlier_mask is None else np.asarray(r.inlier_mask, bool)),
              has_mask=np.array(r.inlier_mask is not None), meta=np.array(json.dumps(meta)))
     os.replace(tmp, path)
@@ -219,6 +221,8 @@ def load_pair_result(path: Path) -> PairResult | None:
                 distances=z["distances"], reference=meta.get("reference"),
                 reference_reason=meta.get("reference_reason", ""), f0=meta.get("f0"), f1=meta.get("f1"),
                 best_views=[ViewParams(float(t), float(p), float(s)) for t, p, s in z["views"]],
+                coarse_scores=[CoarseScore(ViewParams(float(t), float(p), float(s)), int(m), int(i), float(sc))
+                               for t, p, s, m, i, sc in (z["coarse"] if "coarse" in z.files else [])],
                 H_1_from_0=H if H.shape == (3, 3) else None,
                 inlier_mask=z["inlier_mask"] if bool(z["has_mask"]) else None,
                 escalation=meta.get("escalation", ""), reason=meta.get("reason", ""),

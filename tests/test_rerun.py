@@ -1,0 +1,133 @@
+"""Rerun logging (`recon run --rerun`, `recon match --rerun`, `recon view`): read the recording back."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rerun")
+
+from recon.cli import main  # noqa: E402
+from recon.rerun_log import (camera_entity, coarse_grid, heatmap_image, pair_entity,  # noqa: E402
+                             parse_sink)
+
+
+def _columns(rrd: Path) -> dict[str, set[str]]:
+    """{entity path: column names} of the recording store in `rrd`."""
+    from rerun.chunk import RrdReader
+
+    cols: dict[str, set[str]] = {}
+    for c in RrdReader(rrd).stream().to_chunks():
+        cols.setdefault(str(c.entity_path), set()).update(c.to_record_batch().schema.names)
+    return cols
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    from scenes.render import render_scene
+
+    root = tmp_path_factory.mktemp("rr") / "s"
+    render_scene(root, "corner-wide", seed=0, image_size=(480, 360))
+    return root
+
+
+@pytest.fixture(scope="module")
+def runs(scene: Path) -> dict:
+    """Run once with --rerun none (fresh), then again with the default sink (pairs from the cache)."""
+    out = scene.parent / "out"
+    rc_none = main(["run", str(scene), "--out", str(out), "--no-progress", "--rerun", "none"])
+    rrds_after_none = sorted(p.name for p in out.rglob("*.rrd"))
+    rc_save = main(["run", str(scene), "--out", str(out), "--no-progress"])
+    return {"out": out, "rc_none": rc_none, "rrds_after_none": rrds_after_none, "rc_save": rc_save,
+            "report": json.loads((out / "report.json").read_text(encoding="utf-8"))}
+
+
+def test_rerun_none_writes_no_recording(runs):
+    assert runs["rc_none"] == 0
+    assert runs["rrds_after_none"] == []
+
+
+def test_run_recording_has_model_pairs_plots_and_summary(runs):
+    assert runs["rc_save"] == 0
+    out, report = runs["out"], runs["report"]
+    rrd = out / "recording.rrd"
+    assert rrd.is_file() and rrd.stat().st_size > 0
+    assert not list(out.glob(".*tmp-*"))  # the temporary file was moved into place
+    cols = _columns(rrd)
+    assert report["registered"], report
+    for name in report["registered"]:  # every registered image: pose, intrinsics, picture
+        ent = camera_entity(name)
+        assert {"Transform3D:translation", "Transform3D:mat3x3", "Transform3D:relation"} <= cols[f"/{ent}"]
+        assert {"Pinhole:image_from_camera", "Pinhole:resolution", "EncodedImage:blob"} <= cols[f"/{ent}/image"]
+    assert {"Points3D:positions", "Points3D:colors", "reprojection_error", "track_length"} <= cols["/world/points"]
+    assert len(report["pairs"]) == 6
+    for p in report["pairs"]:  # every pair: match picture, Markdown info, COLMAP verdict
+        base = "/" + pair_entity(p["image0"], p["image1"])
+        assert "EncodedImage:blob" in cols[f"{base}/matches"]
+        assert "TextDocument:text" in cols[f"{base}/info"]
+        assert "verified_inliers" in cols[f"{base}/verified"]
+    for k in ("raw_matches", "inliers", "verified_inliers"):
+        assert {"Scalars:scalars", "pair"} <= cols[f"/plots/pair/{k}"]
+    assert "TextDocument:text" in cols["/summary"]
+
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(rrd)
+    assert reader.blueprints(), "the default blueprint is sent with the recording"
+    # the camera pose is COLMAP's cam_from_world, logged as the child-from-parent relation
+    import pycolmap
+
+    model = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    img = next(iter(model.images.values()))
+    chunk = next(c for c in reader.stream().to_chunks()
+                 if str(c.entity_path) == f"/{camera_entity(img.name)}"
+                 and "Transform3D:translation" in c.to_record_batch().schema.names)
+    batch = chunk.to_record_batch()
+    t = np.asarray(batch.column("Transform3D:translation").to_pylist()[0]).reshape(-1)
+    np.testing.assert_allclose(t, img.cam_from_world().translation, rtol=1e-5, atol=1e-6)
+
+
+def test_match_logs_one_pair_with_coarse_heatmap(scene, tmp_path):
+    imgs = sorted((scene / "images").iterdir())[:2]
+    rrd = tmp_path / "pair.rrd"
+    assert main(["match", str(imgs[0]), str(imgs[1]), "--rerun", f"save:{rrd}"]) == 0
+    cols = _columns(rrd)
+    base = "/" + pair_entity(imgs[0].name, imgs[1].name)
+    assert "EncodedImage:blob" in cols[f"{base}/matches"]
+    assert "TextDocument:text" in cols[f"{base}/info"]
+    assert any(c.startswith("Image:") for c in cols[f"{base}/coarse"])
+    assert any(c.startswith("Tensor:") for c in cols[f"{base}/coarse_scores"])
+
+
+def test_coarse_grid_marks_the_chosen_view():
+    from matching.types import CoarseScore, PairResult, ViewParams
+
+    views = [ViewParams(1.0, 0.0), ViewParams(2.0, 0.0), ViewParams(2.0, 45.0), ViewParams(2.0, 90.0)]
+    r = PairResult.empty("x", "")
+    r.coarse_scores = [CoarseScore(v, m, 0, float(m)) for v, m in zip(views, (5, 9, 30, 2))]
+    r.best_views = [views[2]]
+    grid, labels, chosen = coarse_grid(r)
+    assert grid.shape == (2, 3) and np.isnan(grid[0, 1]) and grid[1, 1] == 30
+    assert labels == ["t=1.00", "t=2.00"] and chosen == [(1, 1)]
+    assert heatmap_image(grid, chosen, cell=10).shape == (20, 30, 3)
+
+
+def test_sink_parsing_and_view_errors(tmp_path, monkeypatch, capsys):
+    assert parse_sink("save", tmp_path / "r.rrd").target == str(tmp_path / "r.rrd")
+    assert parse_sink("save:x.rrd").target == "x.rrd"
+    assert parse_sink("connect").kind == "connect" and not parse_sink("none").enabled
+    with pytest.raises(ValueError):
+        parse_sink("bogus")
+    with pytest.raises(ValueError):
+        parse_sink("save")  # recon match: no default file
+    # recon view: a folder without a recording, then a missing viewer: one-line errors, exit 2
+    assert main(["view", str(tmp_path)]) == 2
+    assert "no recording.rrd" in capsys.readouterr().err
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    monkeypatch.setattr("recon.rerun_log.find_viewer", lambda: None)
+    assert main(["view", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "Rerun viewer" in err and len(err.splitlines()) == 1
