@@ -586,7 +586,7 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
         # 5. SfM -------------------------------------------------------------------------------
         from . import sfm
 
-        opts = sfm.mapping_options(cfg.seed, cfg.num_workers, px_scale)
+        opts = sfm.mapping_options(cfg.seed, sfm.MAPPING_THREADS, px_scale)
         report.sfm_options = sfm.options_summary(opts)
         sfm_fp = _fingerprint("sfm", db_fp, report.sfm_options)
         model_dir = out / "sparse" / "0"

@@ -48,6 +48,12 @@ import numpy as np
 import pycolmap
 
 
+# One thread for mapping: multi-threaded bundle adjustment can vary with machine load (one
+# rendered 480 px scene once gave no model under heavy load), and on fountain_P11 one thread
+# took 3.88 s against 3.79 s with two, for the identical model.
+MAPPING_THREADS = 1
+
+
 def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0
                     ) -> pycolmap.IncrementalPipelineOptions:
     """IncrementalPipelineOptions for a small wide-baseline scene (see module doc)."""

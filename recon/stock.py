@@ -277,7 +277,7 @@ def run_stock(scene_dir: str | Path, out_dir: str | Path, preset: Preset = "defa
 
             # sfm: the same incremental mapping options as recon run ------------------------------
             px_scale = float(np.mean([1.0 / min(im.scale_xy) for im in scene.images if im.name in ids]))
-            opts = sfm.mapping_options(seed, threads, px_scale)
+            opts = sfm.mapping_options(seed, sfm.MAPPING_THREADS, px_scale)
             report.sfm_options = sfm.options_summary(opts)
             with stage("sfm"):
                 res = sfm.run_incremental(db_path, scene.image_dir, out / f".sfm-tmp-{os.getpid()}", opts)
