@@ -43,8 +43,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .features import Features
-from .matching_utils import ransac_homography
+from .features import Features, from_keypoints
+from .matching_utils import ransac_homography, ratio_filter
 from .store import FeatureStore
 from .types import PairResult
 
@@ -109,30 +109,6 @@ class AorbConfig(AffineConfig):
 
 
 # helpers ----------------------------------------------------------------------------------------
-def _to_features(kps, desc, dim: int, dtype) -> Features:
-    if desc is None or not kps:
-        return Features.empty(dim, dtype)
-    return Features(
-        np.array([k.pt for k in kps], np.float32).reshape(-1, 2),
-        np.array([k.size for k in kps], np.float32),
-        np.array([k.angle for k in kps], np.float32),
-        np.ascontiguousarray(desc.astype(dtype, copy=False)),
-        np.array([k.response for k in kps], np.float32),
-    )
-
-
-def ratio_test(knn, ratio: float) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
-    """(K, 2) (query, train) index pairs and (K,) distances of the knn pairs passing the ratio test."""
-    pairs, dists = [], []
-    for m in knn:
-        if len(m) >= 2 and m[0].distance < ratio * m[1].distance:
-            pairs.append((m[0].queryIdx, m[0].trainIdx))
-            dists.append(m[0].distance)
-    if not pairs:
-        return np.zeros((0, 2), np.int32), np.zeros((0,), np.float32)
-    return np.asarray(pairs, np.int32), np.asarray(dists, np.float32)
-
-
 def fit_homography(pts0: NDArray, pts1: NDArray, cfg: BaselineConfig
                    ) -> tuple[NDArray[np.float64] | None, NDArray[np.bool_] | None]:
     """The final filter: seeded RANSAC homography mapping pts0 to pts1 and its inliers.
@@ -197,7 +173,7 @@ class _Baseline:
             return done(PairResult.empty(self.name, f"only {len(f1)} keypoint in image 1"))
 
         t = time.perf_counter()
-        matches, dists = ratio_test(self.knn(f0.descriptors, f1.descriptors), cfg.ratio)
+        matches, dists = ratio_filter(self.knn(f0.descriptors, f1.descriptors), cfg.ratio)
         timings["match"] = time.perf_counter() - t
         if len(matches) == 0:
             return done(PairResult.empty(self.name, "no ratio-test matches"))
@@ -233,7 +209,7 @@ class SiftMatcher(_Baseline):
 
     def detect(self, img):
         kps, desc = cv2.SIFT_create(nfeatures=self.cfg.max_features).detectAndCompute(img, None)
-        return _to_features(kps, desc, 128, np.float32)
+        return from_keypoints(kps, desc, 128, np.float32)
 
     def knn(self, d0, d1):
         return cv2.BFMatcher(cv2.NORM_L2).knnMatch(d0, d1, k=2)
@@ -254,7 +230,7 @@ class OrbMatcher(_Baseline):
     def detect(self, img):
         orb = cv2.ORB_create(nfeatures=self.cfg.max_features, fastThreshold=self.cfg.fast_threshold)
         kps, desc = orb.detectAndCompute(img, None)
-        return _to_features(kps, desc, 32, np.uint8)
+        return from_keypoints(kps, desc, 32, np.uint8)
 
     def knn(self, d0, d1):
         return cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d0, d1, k=2)
@@ -277,7 +253,7 @@ class AsiftMatcher(_Baseline):
         af = cv2.AffineFeature.create(cv2.SIFT_create(nfeatures=c.max_features), c.max_tilt, c.min_tilt,
                                       c.tilt_step, c.rotate_step_base)
         kps, desc = af.detectAndCompute(img, None)
-        return _to_features(kps, desc, 128, np.float32)
+        return from_keypoints(kps, desc, 128, np.float32)
 
     def knn(self, d0, d1):
         flann = cv2.FlannBasedMatcher(dict(algorithm=FLANN_INDEX_KDTREE, trees=self.cfg.flann_trees),
@@ -303,7 +279,7 @@ class AorbMatcher(_Baseline):
         orb = cv2.ORB_create(nfeatures=c.max_features, fastThreshold=c.fast_threshold)
         af = cv2.AffineFeature.create(orb, c.max_tilt, c.min_tilt, c.tilt_step, c.rotate_step_base)
         kps, desc = af.detectAndCompute(img, None)
-        return _to_features(kps, desc, 32, np.uint8)
+        return from_keypoints(kps, desc, 32, np.uint8)
 
     def knn(self, d0, d1):
         return cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d0, d1, k=2)

@@ -94,15 +94,21 @@ def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] 
             kps, desc = det.detectAndCompute(img, mask)
     else:
         kps, desc = det.detectAndCompute(img, mask)
+    f = from_keypoints(kps, desc, 32 if cfg.name == "orb" else 128, np.uint8 if cfg.name == "orb" else np.float32)
+    if cfg.name == "sift" and cfg.root_sift and len(f):
+        d = f.descriptors / np.maximum(f.descriptors.sum(axis=1, keepdims=True), 1e-7)
+        f.descriptors = np.sqrt(d) * 512.0  # keep OpenCV's L2 scale (~512) for Eq. 1 and ratios
+    return f
+
+
+def from_keypoints(kps, desc, dim: int, dtype) -> Features:
+    """Features from OpenCV's keypoints and descriptors (empty, of `dim` x `dtype`, when none)."""
     if desc is None or not kps:
-        return Features.empty(32 if cfg.name == "orb" else 128, np.uint8 if cfg.name == "orb" else np.float32)
-    kpts = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
-    sizes = np.array([k.size for k in kps], np.float32)
-    angles = np.array([k.angle for k in kps], np.float32)
-    responses = np.array([k.response for k in kps], np.float32)
-    if cfg.name == "sift":
-        desc = desc.astype(np.float32)
-        if cfg.root_sift:
-            desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-7)
-            desc = np.sqrt(desc) * 512.0  # keep OpenCV's L2 scale (~512) for Eq. 1 and ratios
-    return Features(kpts, sizes, angles, desc, responses)
+        return Features.empty(dim, dtype)
+    return Features(
+        np.array([k.pt for k in kps], np.float32).reshape(-1, 2),
+        np.array([k.size for k in kps], np.float32),
+        np.array([k.angle for k in kps], np.float32),
+        np.ascontiguousarray(desc.astype(dtype, copy=False)),
+        np.array([k.response for k in kps], np.float32),
+    )

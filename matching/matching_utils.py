@@ -34,9 +34,14 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
         ok = (idx[:, 1] >= 0) & (d[:, 0] < ratio * d[:, 1])
         q = np.flatnonzero(ok)
         return np.stack([q, idx[q, 0]], axis=1).astype(np.int32), d[q, 0]
+    return ratio_filter(knn, ratio)
+
+
+def ratio_filter(knn, ratio: float) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """(K, 2) (query, train) pairs and (K,) distances of OpenCV k-NN results passing the ratio test."""
     out, dist = [], []
     for pair in knn:
-        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
+        if len(pair) >= 2 and pair[0].distance < ratio * pair[1].distance:
             out.append((pair[0].queryIdx, pair[0].trainIdx))
             dist.append(pair[0].distance)
     if not out:

@@ -614,12 +614,7 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
 
         # 6. export ----------------------------------------------------------------------------
         with stages("export"):
-            stats = sfm.model_stats(rec)
-            report.registered_images = stats["registered_images"]
-            report.num_points3D = stats["num_points3D"]
-            report.mean_track_length = stats["mean_track_length"]
-            report.mean_reprojection_error = stats["mean_reprojection_error"]
-            report.registered = sfm.registered_names(rec)
+            report.set_model(sfm.model_stats(rec), sfm.registered_names(rec))
             report.num_images = len(scene.images)
             unregistered = [n for n in scene.names if n not in set(report.registered)]
             if rec is not None and unregistered:

@@ -89,6 +89,14 @@ class RunReport:
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
+    def set_model(self, stats: dict[str, Any], registered: list[str]) -> None:
+        """Copy a model's headline numbers (`sfm.model_stats`) and registered image names."""
+        self.registered_images = stats["registered_images"]
+        self.num_points3D = stats["num_points3D"]
+        self.mean_track_length = stats["mean_track_length"]
+        self.mean_reprojection_error = stats["mean_reprojection_error"]
+        self.registered = registered
+
 
 def write_report(report: RunReport, path: str | Path) -> None:
     write_json_atomic(path, report.to_dict())

@@ -285,12 +285,7 @@ def run_stock(scene_dir: str | Path, out_dir: str | Path, preset: Preset = "defa
             report.num_models, report.model_sizes = res.num_models, res.model_sizes
 
             with stage("export"):
-                stats = sfm.model_stats(rec)
-                report.registered_images = stats["registered_images"]
-                report.num_points3D = stats["num_points3D"]
-                report.mean_track_length = stats["mean_track_length"]
-                report.mean_reprojection_error = stats["mean_reprojection_error"]
-                report.registered = sfm.registered_names(rec)
+                report.set_model(sfm.model_stats(rec), sfm.registered_names(rec))
                 if rec is not None and rec.num_points3D() > 0:
                     sfm.write_model_atomic(rec, out / "sparse" / "0")
         except (InputError, UserError):
