@@ -60,6 +60,7 @@ def register(app: typer.Typer) -> None:
             report = run_scene(scene_dir, cfg,
                                on_pair=logger.on_pair if logger else None,
                                on_model=logger.on_model if logger else None,
+                               on_sfm_step=logger.on_sfm_step if logger else None,
                                on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
             ok = True
         except KeyboardInterrupt:

@@ -414,11 +414,14 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
               matcher: PairMatcher | None = None,
               on_pair: Callable[[int, str, str, PairResult, bool], None] | None = None,
               on_model: Callable[[Any, RunReport], None] | None = None,
+              on_sfm_step: Callable[[Any, Any], None] | None = None,
               on_warning: Callable[[str], None] | None = None) -> RunReport:
     """Reconstruct a scene folder; returns the report (also written to OUT/report.json).
 
     `matcher` overrides `cfg.method` (tests, comparisons). Hooks for live logging (e.g. Rerun):
     `on_pair(index, name0, name1, full_res_result, cached)` after each pair is available,
+    `on_sfm_step(sfm.GrowthStep, live_reconstruction)` after each registration step of
+    incremental mapping (not called when an unchanged model is reused),
     `on_model(reconstruction_or_None, report)` at the end. `on_warning(msg)` receives one-line
     warnings (default: printed to stderr as "recon: warning: ...").
     Raises InputError / UserError for unusable input; a scene without a model is not an error
@@ -598,16 +601,24 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
                     report.model_reused = True
                     report.num_models = int(state.get("num_models", 1))
                     report.model_sizes = list(state.get("model_sizes", [rec.num_reg_images()]))
+                    report.sfm_growth = list(state.get("sfm_growth", []))
             if rec is None:
                 adv_sfm = progress.task("sfm", len(scene.images))
-                res = sfm.run_incremental(db_path, scene.image_dir, out / f".sfm-tmp-{os.getpid()}", opts,
-                                          on_init=lambda: adv_sfm(2), on_image=lambda: adv_sfm())
+
+                def sfm_step(step: Any, live: Any) -> None:
+                    adv_sfm(2 if step.registered_images == 2 else 1)
+                    if on_sfm_step is not None:
+                        on_sfm_step(step, live)
+
+                res = sfm.run_incremental(db_path, scene.image_dir, opts, on_step=sfm_step)
                 adv_sfm(done=True)
                 rec = res.reconstruction
                 report.num_models, report.model_sizes = res.num_models, res.model_sizes
+                report.sfm_growth = res.growth
                 if rec is not None:
                     sfm.write_model_atomic(rec, model_dir)
-                    state.update(sfm_fingerprint=sfm_fp, num_models=res.num_models, model_sizes=res.model_sizes)
+                    state.update(sfm_fingerprint=sfm_fp, num_models=res.num_models, model_sizes=res.model_sizes,
+                                 sfm_growth=res.growth)
                 else:
                     state.pop("sfm_fingerprint", None)
                 write_json_atomic(state_path, state)

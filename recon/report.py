@@ -18,7 +18,11 @@
 * `warnings`, `config` (the RunConfig), `camera_mode_used`, `pairs_computed`, `pairs_cached`,
   `features_computed` / `features_reused` (FeatureStore entries: each image's features are
   computed once per run and shared by all its pairs), `database_reused`, `model_reused`,
-  `merge` (keypoint merging counts), `sfm_options`, `scene`, `out`.
+  `merge` (keypoint merging counts), `sfm_options`, `scene`, `out`;
+* `sfm_growth`: one row per registration step of incremental mapping, in order: `step`,
+  `model` (index of the model being built), `image` (just registered), `registered_images`
+  and `num_points3D` of that model right after the step (kept from the run that built the
+  model when the model is reused).
 
 Files are written to a temporary name and `os.replace`d, so a kill never leaves half a report.
 """
@@ -77,6 +81,7 @@ class RunReport:
     model_reused: bool = False
     num_points_ply: int = 0
     sfm_options: dict[str, Any] = field(default_factory=dict)
+    sfm_growth: list[dict[str, Any]] = field(default_factory=list)
     pairs: list[PairRow] = field(default_factory=list)
     skipped: list[dict[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)

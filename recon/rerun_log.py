@@ -13,9 +13,20 @@ and never touches the pipeline itself. Entity layout of a recording:
   JPEG), `.../info` (Markdown), `.../coarse` (heat map of the coarse score of every simulated
   view: row = (tilt, scale), column = longitude index, chosen view(s) boxed in white) and
   `.../coarse_scores` (the raw grid as a `Tensor`, NaN where no view was simulated);
+* `growth/...` on the `registration` timeline (sequence = registration step, 0 = the initial
+  pair): the model as incremental mapping builds it, for replay image by image:
+  `growth/cameras/<image>` (pose and intrinsics of every image registered so far, re-logged
+  each step because bundle adjustment moves them; the image just registered in orange),
+  `growth/points` (at most `GROWTH_POINTS` points, evenly subsampled, uniform colour: COLMAP
+  extracts point colours only at the end) and `growth/info` (Markdown: step, image, counts).
+  Only logged when the model is built in this run (a reused model has no replay);
 * `plots/pair/*`: raw matches, matcher inliers, COLMAP-verified inliers and seconds per pair on
-  the `pair` timeline; `plots/model/points_per_image` (`BarChart`, registered images in image
-  id order); `summary` (Markdown report headline numbers).
+  the `pair` timeline; `plots/bars/verified_inliers` (`BarChart` over pair index);
+  `plots/growth/registered_images` and `plots/growth/points3D` (`BarChart` over registration
+  step, from the report so they exist for reused models too); `plots/model/points_per_image`
+  (`BarChart`, registered images in image id order); `summary` (Markdown report headline numbers).
+
+Per-pair entities and the final model are static, so they show on every timeline.
 
 The sink is opened lazily on the first logged item, so nothing is created in the output folder
 before the pipeline has checked and claimed it. A saved recording is written to a temporary
@@ -43,6 +54,10 @@ SINK_KINDS = ("save", "spawn", "connect", "none")
 THUMB_PX = 320  # longest side of the camera images in the 3D view
 PAIR_PX = 640  # longest side of each image in a pair's side-by-side match picture
 JPEG_QUALITY = 85
+GROWTH_POINTS = 20000  # points per step of the growth replay (keeps a 30-image recording small)
+GROWTH_NEW = (255, 140, 0)  # the camera just registered
+GROWTH_OLD = (150, 150, 150)  # cameras registered earlier
+GROWTH_PTS = (90, 160, 230)
 
 
 @dataclass(frozen=True)
@@ -202,8 +217,14 @@ def summary_markdown(report: Any) -> str:
         lines.append(f"| {p.image0} | {p.image1} | {p.reference or '-'} | {bv} | {p.raw_matches} | {p.verified_inliers} |")
     if report.warnings:
         lines += ["", "## Warnings", ""] + [f"* {w}" for w in report.warnings]
-    lines += ["", "_The pipeline hands over only the final model, so the model plots show its final "
-                  "state (points per registered image), not the growth during incremental mapping._"]
+    if report.sfm_growth:
+        lines += ["", "## Registration order", "", "| step | model | image | registered | 3D points |",
+                  "|---:|---:|---|---:|---:|"]
+        lines += [f"| {g['step']} | {g['model']} | {g['image']} | {g['registered_images']} | {g['num_points3D']} |"
+                  for g in report.sfm_growth]
+    if report.model_reused:
+        lines += ["", "_The model was reused from an earlier run: the growth replay (timeline "
+                      "`registration`) is only recorded when the model is built; use --overwrite._"]
     return "\n".join(lines) + "\n"
 
 
@@ -220,6 +241,7 @@ class RerunLogger:
         self._tmp: Path | None = None
         self._thumbs: dict[str, tuple[NDArray[np.uint8], float] | None] = {}
         self._pairs: list[tuple[int, str, str]] = []
+        self._growth_model: int | None = None  # model index of the last growth step logged
         self.seconds = 0.0  # wall-clock spent logging (overhead measurement)
 
     # sink ---------------------------------------------------------------------------------------
@@ -301,19 +323,55 @@ class RerunLogger:
             small = dataclasses.replace(r, kpts0=(r.kpts0 * np.float32(s0)).astype(np.float32),
                                         kpts1=(r.kpts1 * np.float32(s1)).astype(np.float32))
             rec.log(f"{base}/matches", rr.EncodedImage(contents=_jpeg(draw_matches(im0, im1, small)),
-                                                      media_type="image/jpeg"))
+                                                      media_type="image/jpeg"), static=True)
         rec.log(f"{base}/info", rr.TextDocument(pair_markdown(name0, name1, r, cached),
-                                               media_type=rr.MediaType.MARKDOWN))
+                                               media_type=rr.MediaType.MARKDOWN), static=True)
         rec.log(base, rr.AnyValues(image0=name0, image1=name1, raw_matches=r.num_matches,
-                                   inliers=r.num_inliers, cached=bool(cached)))
+                                   inliers=r.num_inliers, cached=bool(cached)), static=True)
         if r.coarse_scores:
             grid, labels, chosen = coarse_grid(r)
-            rec.log(f"{base}/coarse", rr.Image(heatmap_image(grid, chosen), color_model="RGB"))
+            rec.log(f"{base}/coarse", rr.Image(heatmap_image(grid, chosen), color_model="RGB"), static=True)
             rec.log(f"{base}/coarse_scores", rr.Tensor(grid, dim_names=("tilt", "longitude")),
-                    rr.AnyValues(rows=labels))
+                    rr.AnyValues(rows=labels), static=True)
         rec.log("plots/pair/raw_matches", rr.Scalars(float(r.num_matches)))
         rec.log("plots/pair/inliers", rr.Scalars(float(r.num_inliers)))
         rec.log("plots/pair/seconds", rr.Scalars(float(r.timings.get("total", 0.0))))
+
+    def on_sfm_step(self, step: Any, live: Any) -> None:
+        """`run_scene`'s `on_sfm_step` hook: one frame of the growth replay (see module doc)."""
+        import time
+
+        t0 = time.perf_counter()
+        try:
+            self._log_growth_step(step, live)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def _log_growth_step(self, step: Any, live: Any) -> None:
+        import rerun as rr
+
+        rec = self._open()
+        if rec is None:
+            return
+        rec.reset_time()
+        rec.set_time("registration", sequence=int(step.step))
+        if self._growth_model != step.model:  # a new model: forget the old cameras
+            rec.log("growth", rr.Clear(recursive=True))
+            self._growth_model = step.model
+        for image_id in live.reg_image_ids():
+            img = live.image(image_id)
+            self._log_camera(rec, f"growth/cameras/{_esc(img.name)}", img, with_image=False, static=False,
+                             color=GROWTH_NEW if img.name == step.image or step.registered_images == 2 else GROWTH_OLD)
+        ids = sorted(live.point3D_ids())
+        if len(ids) > GROWTH_POINTS:
+            ids = [ids[i] for i in np.linspace(0, len(ids) - 1, GROWTH_POINTS).round().astype(int)]
+        xyz = np.array([live.point3D(i).xyz for i in ids], np.float64).reshape(-1, 3)
+        rec.log("growth/points", rr.Points3D(xyz, colors=GROWTH_PTS, radii=rr.Radius.ui_points(2.0)))
+        rec.log("growth/info", rr.TextDocument(
+            f"**step {step.step}** (model {step.model}): registered **{step.image}**\n\n"
+            f"{step.registered_images} images, {step.num_points3D} points\n\n"
+            f"order: {', '.join(step.images)}", media_type=rr.MediaType.MARKDOWN))
+        rec.reset_time()
 
     def on_model(self, model: Any, report: Any) -> None:
         import time
@@ -336,10 +394,47 @@ class RerunLogger:
             rec.log(f"{pair_entity(p.image0, p.image1)}/verified", rr.AnyValues(verified_inliers=int(p.verified_inliers),
                                                                               two_view_config=p.config))
         rec.reset_time()
+        if report.pairs:
+            rec.log("plots/bars/verified_inliers", rr.BarChart(np.array([p.verified_inliers for p in report.pairs],
+                                                                         np.float64)),
+                    rr.AnyValues(pairs=[f"{p.image0} | {p.image1}" for p in report.pairs]), static=True)
+        if report.sfm_growth:
+            rec.log("plots/growth/registered_images",
+                    rr.BarChart(np.array([g["registered_images"] for g in report.sfm_growth], np.float64)),
+                    rr.AnyValues(images=[g["image"] for g in report.sfm_growth],
+                                 models=np.array([g["model"] for g in report.sfm_growth], np.int64)), static=True)
+            rec.log("plots/growth/points3D",
+                    rr.BarChart(np.array([g["num_points3D"] for g in report.sfm_growth], np.float64)), static=True)
         if model is not None:
             self._log_reconstruction(rec, model)
         rec.log("summary", rr.TextDocument(summary_markdown(report), media_type=rr.MediaType.MARKDOWN), static=True)
         rec.send_blueprint(self.blueprint(report), make_active=True, make_default=True)
+
+    def _log_camera(self, rec: Any, ent: str, img: Any, *, with_image: bool, static: bool,
+                    color: tuple[int, int, int] | None = None) -> None:
+        """A registered image as `ent` (pose: COLMAP cam_from_world as ChildFromParent) and
+        `ent/image` (Pinhole scaled to the thumbnail, plus the JPEG thumbnail when `with_image`)."""
+        import rerun as rr
+
+        cam = img.camera
+        pose = img.cam_from_world()
+        rec.log(ent, rr.Transform3D(translation=np.asarray(pose.translation, np.float64),
+                                    mat3x3=np.asarray(pose.rotation.matrix(), np.float64),
+                                    relation=rr.TransformRelation.ChildFromParent), static=static)
+        K = np.asarray(cam.calibration_matrix(), np.float64)
+        thumb = self._thumb(img.name) if with_image else None
+        if thumb is not None:
+            small, _ = _resize_longest(thumb[0], THUMB_PX)
+            h, w = small.shape[:2]
+        else:
+            small = None
+            s = THUMB_PX / max(cam.width, cam.height)
+            w, h = max(1, round(cam.width * s)), max(1, round(cam.height * s))
+        Ks = np.diag([w / cam.width, h / cam.height, 1.0]) @ K
+        rec.log(f"{ent}/image", rr.Pinhole(image_from_camera=Ks, resolution=[w, h], image_plane_distance=0.5,
+                                           color=color), static=static)
+        if small is not None:
+            rec.log(f"{ent}/image", rr.EncodedImage(contents=_jpeg(small), media_type="image/jpeg"), static=static)
 
     def _log_reconstruction(self, rec: Any, model: Any) -> None:
         import rerun as rr
@@ -347,29 +442,11 @@ class RerunLogger:
         names, counts = [], []
         for image_id in sorted(model.reg_image_ids()):
             img = model.image(image_id)
-            cam = img.camera
-            pose = img.cam_from_world()
             ent = camera_entity(img.name)
-            rec.log(ent, rr.Transform3D(translation=np.asarray(pose.translation, np.float64),
-                                        mat3x3=np.asarray(pose.rotation.matrix(), np.float64),
-                                        relation=rr.TransformRelation.ChildFromParent), static=True)
-            K = np.asarray(cam.calibration_matrix(), np.float64)
-            thumb = self._thumb(img.name)
-            if thumb is not None:
-                small, s0 = thumb
-                small, s1 = _resize_longest(small, THUMB_PX)
-                h, w = small.shape[:2]
-                sx, sy = w / cam.width, h / cam.height
-            else:
-                small, (w, h), sx, sy = None, (cam.width, cam.height), 1.0, 1.0
-            Ks = np.diag([sx, sy, 1.0]) @ K
-            rec.log(f"{ent}/image", rr.Pinhole(image_from_camera=Ks, resolution=[w, h],
-                                               image_plane_distance=0.5), static=True)
-            if small is not None:
-                rec.log(f"{ent}/image", rr.EncodedImage(contents=_jpeg(small), media_type="image/jpeg"), static=True)
-            rec.log(ent, rr.AnyValues(image_name=img.name, image_id=int(image_id), camera_model=cam.model_name,
-                                      camera_params=np.asarray(cam.params, np.float64),
-                                      full_resolution=np.array([cam.width, cam.height], np.int64),
+            self._log_camera(rec, ent, img, with_image=True, static=True)
+            rec.log(ent, rr.AnyValues(image_name=img.name, image_id=int(image_id), camera_model=img.camera.model_name,
+                                      camera_params=np.asarray(img.camera.params, np.float64),
+                                      full_resolution=np.array([img.camera.width, img.camera.height], np.int64),
                                       num_points3D=int(img.num_points3D)), static=True)
             names.append(img.name)
             counts.append(int(img.num_points3D))
@@ -410,12 +487,21 @@ class RerunLogger:
                              rrb.TextDocumentView(name="pair info", origin=f"{base}/info")),
                 column_shares=[3, 2], name="pair"))
         tabs.append(rrb.TextDocumentView(name="summary", origin="summary"))
-        plots = rrb.Horizontal(rrb.TimeSeriesView(name="per pair", origin="plots/pair"),
-                               rrb.BarChartView(name="points per registered image", origin="plots/model/points_per_image"),
-                               name="plots")
+        plots = rrb.Tabs(
+            rrb.TimeSeriesView(name="per pair", origin="plots/pair"),
+            rrb.BarChartView(name="verified inliers per pair", origin="plots/bars/verified_inliers"),
+            rrb.Horizontal(rrb.BarChartView(name="registered images per step", origin="plots/growth/registered_images"),
+                           rrb.BarChartView(name="3D points per step", origin="plots/growth/points3D"),
+                           name="growth"),
+            rrb.BarChartView(name="points per registered image", origin="plots/model/points_per_image"),
+            name="plots")
+        world = rrb.Tabs(
+            rrb.Spatial3DView(name="3D", origin="world"),
+            rrb.Vertical(rrb.Spatial3DView(name="growth replay (timeline: registration)", origin="growth"),
+                         rrb.TextDocumentView(name="step", origin="growth/info"), row_shares=[5, 1],
+                         name="growth replay"))
         return rrb.Blueprint(
-            rrb.Horizontal(rrb.Spatial3DView(name="3D", origin="world"),
-                           rrb.Vertical(rrb.Tabs(*tabs), plots, row_shares=[3, 2]),
+            rrb.Horizontal(world, rrb.Vertical(rrb.Tabs(*tabs), plots, row_shares=[3, 2]),
                            column_shares=[1, 1]),
             collapse_panels=False)
 

@@ -41,7 +41,7 @@ from __future__ import annotations
 import os
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -106,25 +106,78 @@ class SfmResult:
     reconstruction: pycolmap.Reconstruction | None
     num_models: int
     model_sizes: list[int]  # registered images per model, largest first
+    growth: list[dict] = field(default_factory=list)  # one GrowthStep.to_dict() per registration
 
 
-def run_incremental(db_path: str | Path, image_dir: str | Path, work_dir: str | Path,
-                    options: pycolmap.IncrementalPipelineOptions,
-                    on_init: Callable[[], None] | None = None,
-                    on_image: Callable[[], None] | None = None) -> SfmResult:
-    """Run incremental mapping; return the largest model (or None). `work_dir` is removed after."""
-    work = Path(work_dir)
-    shutil.rmtree(work, ignore_errors=True)
-    work.mkdir(parents=True)
+@dataclass(frozen=True)
+class GrowthStep:
+    """The model right after one registration step of incremental mapping.
+
+    `step` counts registration events over the whole run (0 = the initial pair), `model` is the
+    index of the model being built (a new one starts when the view graph falls apart),
+    `image` is the image just registered (for the initial pair: the second image of the pair;
+    `images` lists every image registered in this model so far, in registration order).
+    """
+    step: int
+    model: int
+    image: str
+    images: tuple[str, ...]
+    registered_images: int
+    num_points3D: int
+
+    def to_dict(self) -> dict:
+        return dict(step=self.step, model=self.model, image=self.image, registered_images=self.registered_images,
+                    num_points3D=self.num_points3D)
+
+
+StepHook = Callable[[GrowthStep, pycolmap.Reconstruction], None]
+
+
+def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolmap.IncrementalPipelineOptions,
+                    on_step: StepHook | None = None) -> SfmResult:
+    """Run incremental mapping on a database; return the largest model (or None) and its growth.
+
+    Uses `pycolmap.IncrementalPipeline` with our own `ReconstructionManager` rather than
+    `pycolmap.incremental_mapping`, whose callbacks take no arguments: after the initial pair and
+    after every further registration, `on_step(step, reconstruction)` receives the live model
+    (read it inside the hook, it changes afterwards) so callers can show the reconstruction
+    growing. Nothing is written to disk here (see `write_model_atomic`).
+    """
+    opts = options
+    opts.image_path = str(image_dir)  # for extract_colors
+    manager = pycolmap.ReconstructionManager()
+    growth: list[dict] = []
+    order: dict[int, list[str]] = {}
+    seen: dict[int, set[int]] = {}
+
+    def hook() -> None:
+        idx = manager.size() - 1
+        rec = manager.get(idx)
+        reg = list(rec.reg_image_ids())
+        known = seen.setdefault(idx, set())
+        new = [i for i in reg if i not in known]
+        known.update(new)
+        names = order.setdefault(idx, [])
+        names += [rec.image(i).name for i in sorted(new)]
+        step = GrowthStep(step=len(growth), model=idx, image=names[-1] if names else "", images=tuple(names),
+                          registered_images=len(reg), num_points3D=int(rec.num_points3D()))
+        growth.append(step.to_dict())
+        if on_step is not None:
+            on_step(step, rec)
+
+    db = pycolmap.Database.open(str(db_path))
     try:
-        models = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(work), options,
-                                              initial_image_pair_callback=on_init,
-                                              next_image_callback=on_image)
+        pipeline = pycolmap.IncrementalPipeline(opts, db, manager)
+        pipeline.add_callback(pycolmap.IncrementalPipelineCallback.INITIAL_IMAGE_PAIR_REG_CALLBACK, hook)
+        pipeline.add_callback(pycolmap.IncrementalPipelineCallback.NEXT_IMAGE_REG_CALLBACK, hook)
+        pipeline.run()
     finally:
-        shutil.rmtree(work, ignore_errors=True)
-    recs = [r for r in models.values() if r.num_reg_images() > 0]
-    recs.sort(key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
-    return SfmResult(recs[0] if recs else None, len(recs), [int(r.num_reg_images()) for r in recs])
+        db.close()
+    recs = [(i, manager.get(i)) for i in range(manager.size())]
+    recs = [(i, r) for i, r in recs if r.num_reg_images() > 0]
+    recs.sort(key=lambda ir: (ir[1].num_reg_images(), ir[1].num_points3D()), reverse=True)
+    best = recs[0][1] if recs else None
+    return SfmResult(best, len(recs), [int(r.num_reg_images()) for _, r in recs], growth)
 
 
 def write_model_atomic(rec: pycolmap.Reconstruction, model_dir: str | Path) -> None:

@@ -280,9 +280,10 @@ def run_stock(scene_dir: str | Path, out_dir: str | Path, preset: Preset = "defa
             opts = sfm.mapping_options(seed, sfm.MAPPING_THREADS, px_scale)
             report.sfm_options = sfm.options_summary(opts)
             with stage("sfm"):
-                res = sfm.run_incremental(db_path, scene.image_dir, out / f".sfm-tmp-{os.getpid()}", opts)
+                res = sfm.run_incremental(db_path, scene.image_dir, opts)
             rec = res.reconstruction
             report.num_models, report.model_sizes = res.num_models, res.model_sizes
+            report.sfm_growth = res.growth
 
             with stage("export"):
                 report.set_model(sfm.model_stats(rec), sfm.registered_names(rec))

@@ -36,12 +36,16 @@ def scene(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def runs(scene: Path) -> dict:
-    """Run once with --rerun none (fresh), then again with the default sink (pairs from the cache)."""
-    out = scene.parent / "out"
-    rc_none = main(["run", str(scene), "--out", str(out), "--no-progress", "--rerun", "none"])
-    rrds_after_none = sorted(p.name for p in out.rglob("*.rrd"))
+    """Run once with --rerun none, once with the default sink (both fresh, so both build the
+    model and the second records the growth replay), then the second again (all reused)."""
+    out_none, out = scene.parent / "out-none", scene.parent / "out"
+    rc_none = main(["run", str(scene), "--out", str(out_none), "--no-progress", "--rerun", "none"])
+    rrds_after_none = sorted(p.name for p in out_none.rglob("*.rrd"))
     rc_save = main(["run", str(scene), "--out", str(out), "--no-progress"])
+    fresh = _columns(out / "recording.rrd")
+    rc_reused = main(["run", str(scene), "--out", str(out), "--no-progress"])
     return {"out": out, "rc_none": rc_none, "rrds_after_none": rrds_after_none, "rc_save": rc_save,
+            "rc_reused": rc_reused, "fresh_columns": fresh,
             "report": json.loads((out / "report.json").read_text(encoding="utf-8"))}
 
 
@@ -88,6 +92,31 @@ def test_run_recording_has_model_pairs_plots_and_summary(runs):
     batch = chunk.to_record_batch()
     t = np.asarray(batch.column("Transform3D:translation").to_pylist()[0]).reshape(-1)
     np.testing.assert_allclose(t, img.cam_from_world().translation, rtol=1e-5, atol=1e-6)
+
+
+def test_growth_replay_and_plots(runs):
+    """The fresh run records the model growing image by image; the reused run keeps the plots."""
+    report = runs["report"]
+    growth = report["sfm_growth"]
+    assert runs["rc_reused"] == 0 and report["model_reused"]
+    assert [g["step"] for g in growth] == list(range(len(growth)))
+    assert growth[0]["registered_images"] == 2  # the initial pair
+    assert growth[-1]["registered_images"] == report["registered_images"]
+    # one step per registration after the pair, each naming a different registered image
+    assert len(growth) == report["registered_images"] - 1
+    assert len({g["image"] for g in growth}) == len(growth) and {g["image"] for g in growth} <= set(report["registered"])
+    assert [g["registered_images"] for g in growth] == list(range(2, report["registered_images"] + 1))
+    fresh = runs["fresh_columns"]
+    for name in report["registered"]:
+        ent = f"/growth/cameras/{name}"
+        assert {"Transform3D:translation", "registration"} <= fresh[ent]
+        assert "Pinhole:image_from_camera" in fresh[f"{ent}/image"]
+    assert {"Points3D:positions", "registration"} <= fresh["/growth/points"]
+    assert "TextDocument:text" in fresh["/growth/info"]
+    reused = _columns(runs["out"] / "recording.rrd")
+    assert not any(k.startswith("/growth/") for k in reused)  # no replay without rebuilding
+    for ent in ("/plots/growth/registered_images", "/plots/growth/points3D", "/plots/bars/verified_inliers"):
+        assert any(c.startswith("BarChart:") for c in reused[ent])
 
 
 def test_match_logs_one_pair_with_coarse_heatmap(scene, tmp_path):
