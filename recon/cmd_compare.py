@@ -26,6 +26,9 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="Seed for the matcher and COLMAP's RANSAC.")] = 0,
         progress: Annotated[bool, typer.Option("--progress/--no-progress",
                                                help="recon run's progress bars on stderr.")] = False,
+        rerun: Annotated[str, typer.Option(
+            "--rerun", help="Rerun sink for both models in one frame: save[:PATH] (default: OUT/compare.rrd), "
+                            "spawn, connect[:URL] or none.")] = "save",
     ) -> None:
         """Run stock COLMAP and the extra-affine pipeline on the same images and pairs, and compare them."""
         import sys
@@ -34,7 +37,19 @@ def register(app: typer.Typer) -> None:
 
         from .compare import compare_scene, compare_table
 
+        from .cli import UserError
+        from .compare import load_gt
+        from .compare_rerun import COMPARE_RECORDING, log_comparison
+        from .rerun_log import find_viewer, parse_sink
+
         presets = [p.strip() for p in stock_preset.split(",") if p.strip()]
+        out_dir = (out or scene_dir / "compare").expanduser()
+        try:
+            sink = parse_sink(rerun, out_dir.resolve() / COMPARE_RECORDING)
+        except ValueError as e:
+            raise UserError(str(e)) from None
+        if sink.kind == "spawn" and find_viewer() is None:
+            raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; use --rerun save")
         err = Console(stderr=True, highlight=False)
         res = compare_scene(scene_dir, out, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
                             progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
@@ -42,3 +57,9 @@ def register(app: typer.Typer) -> None:
         console = Console(width=None if sys.stdout.isatty() else 140)
         console.print(compare_table(res))
         console.print(f"JSON: {Path(res['out']) / 'compare.json'}")
+        if sink.enabled:
+            gt, _, _ = load_gt(Path(res["scene"]))
+            saved = log_comparison(sink, res, gt)
+            if saved is not None:
+                print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "
+                      f"open it with: recon view {saved}", file=sys.stderr)

@@ -9,15 +9,19 @@ import typer
 
 
 def resolve_recording(target: Path) -> Path:
-    """OUT_DIR -> OUT_DIR/recording.rrd; a file is taken as is. UserError when there is none."""
+    """OUT_DIR -> OUT_DIR/recording.rrd (a `recon run` folder) or OUT_DIR/compare.rrd (a
+    `recon compare` folder); a file is taken as is. UserError when there is none."""
     from .cli import UserError
+    from .compare_rerun import COMPARE_RECORDING
     from .rerun_log import RECORDING_NAME
 
     p = target.expanduser()
     if p.is_dir():
-        p = p / RECORDING_NAME
-        if not p.is_file():
-            raise UserError(f"{target}: no {RECORDING_NAME} here (run `recon run` without --rerun none)")
+        found = [p / n for n in (RECORDING_NAME, COMPARE_RECORDING) if (p / n).is_file()]
+        if not found:
+            raise UserError(f"{target}: no {RECORDING_NAME} or {COMPARE_RECORDING} here (run `recon run` or "
+                            "`recon compare` without --rerun none)")
+        p = found[0]
     elif not p.is_file():
         raise UserError(f"{target}: no such recording or output folder")
     return p
@@ -26,9 +30,9 @@ def resolve_recording(target: Path) -> Path:
 def register(app: typer.Typer) -> None:
     @app.command("view")
     def view(
-        target: Annotated[Path, typer.Argument(help="A `recon run` output folder or a .rrd file.")],
+        target: Annotated[Path, typer.Argument(help="A `recon run` or `recon compare` output folder, or a .rrd file.")],
     ) -> None:
-        """Open a Rerun recording (OUT_DIR/recording.rrd) in the Rerun viewer."""
+        """Open a Rerun recording (OUT_DIR/recording.rrd or compare.rrd) in the Rerun viewer."""
         import subprocess
 
         from .cli import UserError

@@ -245,7 +245,7 @@ class RerunLogger:
         self.seconds = 0.0  # wall-clock spent logging (overhead measurement)
 
     # sink ---------------------------------------------------------------------------------------
-    def _open(self):
+    def open_sink(self):
         if self.rec is not None or not self.sink.enabled:
             return self.rec
         import rerun as rr
@@ -309,7 +309,7 @@ class RerunLogger:
     def _log_pair(self, i: int, name0: str, name1: str, r: PairResult, cached: bool) -> None:
         import rerun as rr
 
-        rec = self._open()
+        rec = self.open_sink()
         if rec is None:
             return
         self._pairs.append((i, name0, name1))
@@ -350,7 +350,7 @@ class RerunLogger:
     def _log_growth_step(self, step: Any, live: Any) -> None:
         import rerun as rr
 
-        rec = self._open()
+        rec = self.open_sink()
         if rec is None:
             return
         rec.reset_time()
@@ -385,7 +385,7 @@ class RerunLogger:
     def _log_model(self, model: Any, report: Any) -> None:
         import rerun as rr
 
-        rec = self._open()
+        rec = self.open_sink()
         if rec is None:
             return
         for i, p in enumerate(report.pairs):  # COLMAP's verdict is known only now

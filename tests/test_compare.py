@@ -44,6 +44,61 @@ def test_compare_stock_fails_ours_succeeds_via_cli(facade, tmp_path, capsys):
     assert data["clouds"]["status"] == "skipped" and "stock" in data["clouds"]["message"]
     text = capsys.readouterr().out
     assert "extra_affine" in text and "stock-default" in text and "no_model" in text
+    cols = _columns(out / "compare.rrd")  # the default sink: both runs in one recording
+    assert "Points3D:positions" in cols["/world/extra_affine/points"]
+    assert not any(k.startswith("/world/stock-default/") for k in cols)  # stock found no model
+    assert "TextDocument:text" in cols["/summary"]
+
+
+def _columns(rrd: Path) -> dict[str, set[str]]:
+    from rerun.chunk import RrdReader
+
+    cols: dict[str, set[str]] = {}
+    for c in RrdReader(rrd).stream().to_chunks():
+        cols.setdefault(str(c.entity_path), set()).update(c.to_record_batch().schema.names)
+    return cols
+
+
+def _logged_centres(rrd: Path, prefix: str) -> dict[str, np.ndarray]:
+    """{image name: camera centre} of the cameras logged under `prefix`/cameras/<name>."""
+    from rerun.chunk import RrdReader
+
+    out = {}
+    for c in RrdReader(rrd).stream().to_chunks():
+        path = str(c.entity_path)
+        names = c.to_record_batch().schema.names
+        if path.startswith(f"{prefix}/cameras/") and path.count("/") == prefix.count("/") + 2 \
+                and "Transform3D:translation" in names:
+            b = c.to_record_batch()
+            t = np.asarray(b.column("Transform3D:translation").to_pylist()[0], np.float64).reshape(3)
+            R = np.asarray(b.column("Transform3D:mat3x3").to_pylist()[0], np.float64).reshape(3, 3).T  # column-major
+            out[path.rsplit("/", 1)[1]] = -R.T @ t
+    return out
+
+
+def test_compare_recording_aligns_every_model_to_the_ground_truth(facade, tmp_path):
+    """--stock-preset high (which registers this scene) and ours, logged in the GT frame: each
+    model's logged camera centres land on the GT centres."""
+    from recon.cli import main
+    from recon.gt import find_gt
+
+    out = tmp_path / "cmp-high"
+    rrd = tmp_path / "c.rrd"
+    assert main(["compare", str(facade), "--out", str(out), "--max-size", "640", "--stock-preset", "high",
+                 "--rerun", f"save:{rrd}"]) == 0
+    assert not (out / "compare.rrd").exists()  # the recording went where it was asked
+    gt = find_gt(facade)
+    gt_c = {n: -g.cam_from_world[:, :3].T @ g.cam_from_world[:, 3] for n, g in gt.items()}
+    extent = max(np.linalg.norm(a - b) for a in gt_c.values() for b in gt_c.values())
+    logged_gt = _logged_centres(rrd, "/world/gt")
+    assert set(logged_gt) == set(gt_c)
+    for n in gt_c:
+        np.testing.assert_allclose(logged_gt[n], gt_c[n], atol=1e-6 * extent)
+    for method in ("extra_affine", "stock-high"):
+        centres = _logged_centres(rrd, f"/world/{method}")
+        assert len(centres) == 4, method
+        err = max(np.linalg.norm(centres[n] - gt_c[n]) for n in centres)
+        assert err < 0.02 * extent, (method, err, extent)
 
 
 def test_malformed_gt_warns_and_completes(facade, tmp_path):
