@@ -9,13 +9,13 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO   := out/demo
 
-.PHONY: setup demo test test-fast bench-pairs clean
+.PHONY: setup demo test test-fast bench-pairs bench-difficulty clean
 
 $(STAMP): pyproject.toml
 	@./.ci/system-deps.sh
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
 	@touch $(STAMP)
 
 setup: $(STAMP)
@@ -34,6 +34,10 @@ test-fast: $(STAMP)
 
 bench-pairs: $(STAMP)
 	$(BIN)/recon bench pairs ../shared/data --json benchmarks/results/pairs.json
+
+bench-difficulty: $(STAMP)
+	$(BIN)/recon bench difficulty --json benchmarks/results/difficulty.json
+	cp out/bench-difficulty/difficulty.png benchmarks/results/difficulty.png
 
 clean:
 	rm -rf $(VENV) out *.egg-info

@@ -112,6 +112,53 @@ def scenes_cmd(
         typer.echo(f"JSON: {json_out}")
 
 
+@bench_app.command("difficulty")
+def difficulty_cmd(
+    out: Annotated[Path, typer.Option("--out", help="Rendered scenes, runs, difficulty.json and difficulty.png.")]
+        = Path("out") / "bench-difficulty",
+    views: Annotated[str, typer.Option("--views", help="Comma-separated numbers of views (>= 3); the step "
+                                                       "between neighbours is 2*MAX_AZIMUTH/(N-1).")] = "3,4,5,7,9,13",
+    max_azimuth: Annotated[float, typer.Option("--max-azimuth", help="Cameras spread over +-this many degrees "
+                                                                     "about the facade normal.")] = 78.0,
+    stock_presets: Annotated[str, typer.Option("--stock-presets", help="Comma-separated: default, high.")]
+        = "default,high",
+    image_size: Annotated[Optional[str], typer.Option("--image-size", help="Rendered size WxH (default: the "
+                                                                           "preset's 800x600).")] = None,
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also copy the rows to this JSON file.")] = None,
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+    rerun: Annotated[bool, typer.Option("--rerun", help="Recompute scenes whose compare.json already exists.")]
+        = False,
+) -> None:
+    """Difficulty curve: azimuth step between views vs registered images and rotation error (stock vs ours)."""
+    import shutil
+    import sys
+
+    from rich.console import Console
+
+    from .cli import UserError
+    from .difficulty import difficulty_table, plot_difficulty, run_difficulty
+
+    try:
+        counts = [int(v) for v in views.split(",") if v.strip()]
+        size = tuple(int(x) for x in image_size.lower().split("x")) if image_size else None
+    except ValueError:
+        raise UserError(f"--views {views!r} / --image-size {image_size!r}: expected e.g. 3,4,5 and 800x600") from None
+    if size is not None and (len(size) != 2 or min(size) < 64):
+        raise UserError(f"--image-size {image_size!r}: expected WxH, each at least 64 px")
+    presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
+    err = Console(stderr=True, highlight=False)
+    data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]
+                          rerun=rerun, log=lambda m: err.print(f"recon: {m}", markup=False))
+    Console(width=None if sys.stdout.isatty() else 160).print(difficulty_table(data))
+    js = Path(out) / "difficulty.json"
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(js, json_out)
+    png = plot_difficulty(data, Path(out) / "difficulty.png")
+    typer.echo(f"JSON: {json_out or js}")
+    typer.echo(f"plot: {png}" if png else "plot: skipped (matplotlib not installed: pip install -e '.[bench]')")
+
+
 def register(app: typer.Typer) -> None:
     """Add the `bench` sub-app to the recon CLI (idempotent: `main()` may register twice)."""
     if any(g.typer_instance is bench_app for g in app.registered_groups):

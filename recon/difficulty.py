@@ -1,0 +1,191 @@
+"""The difficulty curve: azimuth step between neighbouring views against registration and accuracy.
+
+`run_difficulty(out, views=(3, 4, 5, 7, 9, 13), max_azimuth_deg=78)` renders the stepped facade
+(`scenes.presets.facade_sweep`) seen from N cameras spread evenly over ±`max_azimuth_deg`, so the
+step between neighbours is 2·max_azimuth / (N − 1) (78° for N = 3 down to 13° for N = 13) while
+the extreme viewing angles stay the same; then runs `recon.compare.compare_scene` (stock COLMAP
+`default` and `high`, and ours, same images and pairs) on each and collects, per step and method:
+registered images, median relative rotation and translation-direction errors against the
+rendered ground truth, AUC@5°, verified pairs, mean verified inliers per verified pair, and
+time. A scene that does not register fully still counts: its rotation error is over the pairs
+it did register (and `registered` says how many), AUC counts unregistered pairs as failures.
+
+Outputs (under OUT): `scenes/<preset>/` (rendered once, reused when the same seed and size are
+already there), `runs/<preset>/` (each `compare` output), `difficulty.json` (rows + config,
+rewritten atomically after every scene, so an interrupted sweep keeps its finished scenes and
+the next run re-uses their `compare.json` unless --rerun), and, when matplotlib is installed
+(the `bench` extra), `difficulty.png`: registered fraction and rotation error against the step.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from .compare import OURS_KEY, compare_scene
+from .jsonio import write_json_atomic
+
+DEFAULT_VIEWS = (3, 4, 5, 7, 9, 13)
+DEFAULT_MAX_AZIMUTH = 78.0
+DEFAULT_PRESETS = ("default", "high")
+Log = Callable[[str], None]
+
+
+def step_deg(num_views: int, max_azimuth_deg: float) -> float:
+    return 2.0 * max_azimuth_deg / (num_views - 1)
+
+
+def _scene(out: Path, preset: str, seed: int, image_size: tuple[int, int] | None, log: Log) -> tuple[Path, bool]:
+    """(scene folder, whether it was (re-)rendered now: earlier runs on it are then stale)."""
+    from scenes.render import render_scene
+
+    d = out / "scenes" / preset
+    meta_path = d / "gt" / "scene.json"
+    if meta_path.is_file():
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+            same = meta.get("seed") == seed and (image_size is None or list(image_size) == meta.get("image_size"))
+        except (OSError, ValueError):
+            same = False
+        if same and (d / "images").is_dir():
+            return d, False
+    log(f"rendering {preset} -> {d}")
+    render_scene(d, preset, seed=seed, image_size=image_size, overwrite=True)
+    return d, True
+
+
+def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, Any]]:
+    """One row per method of one `compare_scene` result."""
+    rows = []
+    for name, m in res["methods"].items():
+        rows.append({
+            "views": num_views, "step_deg": round(step, 2), "method": "ours" if name == OURS_KEY else name,
+            "status": m.get("status"), "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
+            "rot_err_deg": m.get("rel_rot_err_deg_median"), "trans_err_deg": m.get("rel_trans_err_deg_median"),
+            "auc_5": m.get("auc_5"), "verified_pairs": m.get("verified_pairs", 0), "pairs": m.get("num_pairs", 0),
+            "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
+            "seconds": m.get("seconds_total"),
+        })
+    return rows
+
+
+def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_azimuth_deg: float = DEFAULT_MAX_AZIMUTH,
+                   presets: Sequence[str] = DEFAULT_PRESETS, seed: int = 0, image_size: tuple[int, int] | None = None,
+                   max_size: int = 1600, rerun: bool = False, log: Log = lambda _m: None) -> dict[str, Any]:
+    """Render and compare every sweep scene; returns {"config", "rows"} (also OUT/difficulty.json)."""
+    from .cli import UserError
+    from scenes.presets import get_preset
+
+    views = sorted({int(v) for v in views})
+    if not views or views[0] < 3:
+        raise UserError("--views: give view counts of at least 3 (e.g. 3,4,5,7)")
+    if not 0 < max_azimuth_deg <= 85:
+        raise UserError("--max-azimuth: degrees in (0, 85]")
+    out = Path(out).expanduser().resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    config = {"views": views, "max_azimuth_deg": max_azimuth_deg, "presets": list(presets), "seed": seed,
+              "image_size": list(image_size) if image_size else list(get_preset(f"facade-3x{max_azimuth_deg:g}").image_size),
+              "max_size": max_size, "cpu_count": os.cpu_count(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    rows: list[dict[str, Any]] = []
+    for n in views:
+        preset = f"facade-{n}x{max_azimuth_deg:g}"
+        scene, rendered = _scene(out, preset, seed, image_size, log)
+        run_dir = out / "runs" / preset
+        res = None
+        cj = run_dir / "compare.json"
+        if cj.is_file() and not rerun and not rendered:
+            try:
+                res = json.loads(cj.read_text(encoding="utf-8"))
+                if (res.get("config", {}).get("stock_presets") != list(presets)
+                        or res["config"].get("max_size") != max_size or res["config"].get("seed") != seed):
+                    res = None
+            except (OSError, ValueError, KeyError):
+                res = None
+            if res is not None:
+                log(f"{preset}: reusing {cj} (--rerun to recompute)")
+        if res is None:
+            res = compare_scene(scene, run_dir, presets=presets, max_size=max_size, seed=seed, strict=False,
+                                log=log, on_warning=lambda m, p=preset: log(f"{p}: warning: {m}"))
+        rows += rows_of(res, n, step_deg(n, max_azimuth_deg))
+        write_json_atomic(out / "difficulty.json", {"config": config, "rows": rows})
+    return {"config": config, "rows": rows}
+
+
+def difficulty_table(data: dict[str, Any]):
+    """A rich table: one row per step, per method `registered` / `rot err` / `inliers per pair`."""
+    from rich.table import Table
+
+    rows = data["rows"]
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    cfg = data["config"]
+    t = Table(title=f"Difficulty curve: stepped facade over ±{cfg['max_azimuth_deg']:g}° "
+                    f"({cfg['image_size'][0]}x{cfg['image_size'][1]} px)", header_style="bold")
+    t.add_column("views", justify="right")
+    t.add_column("step °", justify="right")
+    for m in methods:
+        t.add_column(f"{m}\nregistered", justify="right")
+        t.add_column(f"{m}\nrot err ° med", justify="right")
+        t.add_column(f"{m}\ninliers/pair", justify="right")
+    for n in dict.fromkeys(r["views"] for r in rows):
+        by = {r["method"]: r for r in rows if r["views"] == n}
+        cells = [str(n), f"{next(iter(by.values()))['step_deg']:.1f}"]
+        for m in methods:
+            r = by.get(m)
+            if r is None:
+                cells += ["-", "-", "-"]
+                continue
+            full = r["registered"] == r["images"]
+            reg = f"{r['registered']}/{r['images']}"
+            cells += [reg if full else f"[red]{reg}[/red]",
+                      "-" if r["rot_err_deg"] is None else f"{r['rot_err_deg']:.2f}",
+                      f"{r['inliers_per_pair']:.0f}"]
+        t.add_row(*cells)
+    return t
+
+
+def plot_difficulty(data: dict[str, Any], path: str | Path) -> Path | None:
+    """difficulty.png (registered fraction, rotation error, inliers per pair against the step);
+    None when matplotlib (the `bench` extra) is not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    rows = data["rows"]
+    # distinct line styles and marker sizes: curves that coincide (e.g. all registered) stay visible
+    style = {"ours": ("tab:blue", "o", "-", 9), "stock-default": ("tab:orange", "s", "--", 7),
+             "stock-high": ("tab:purple", "^", ":", 6)}
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for m in dict.fromkeys(r["method"] for r in rows):
+        rs = sorted((r for r in rows if r["method"] == m), key=lambda r: r["step_deg"])
+        c, mk, ls, ms = style.get(m, ("tab:gray", "x", "-.", 6))
+        kw = dict(marker=mk, color=c, linestyle=ls, markersize=ms, label=m, linewidth=2, zorder=20 - ms)
+        x = [r["step_deg"] for r in rs]
+        axes[0].plot(x, [r["registered"] / max(r["images"], 1) for r in rs], **kw)
+        axes[1].plot(x, [float("nan") if r["rot_err_deg"] is None else r["rot_err_deg"] for r in rs], **kw)
+        axes[2].plot(x, [r["inliers_per_pair"] for r in rs], **kw)
+    axes[0].set_ylabel("registered images (fraction)")
+    axes[0].set_ylim(-0.05, 1.05)
+    axes[1].set_ylabel("median relative rotation error (°)")
+    axes[1].set_ylim(bottom=0)
+    axes[2].set_ylabel("verified inliers per verified pair")
+    axes[2].set_ylim(bottom=0)
+    for ax in axes:
+        ax.set_xlabel("azimuth step between neighbouring views (°)")
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    cfg = data["config"]
+    fig.suptitle(f"Stepped facade, views over ±{cfg['max_azimuth_deg']:g}° azimuth: stock COLMAP vs extra-affine")
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
