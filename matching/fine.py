@@ -184,3 +184,70 @@ def guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDAr
         accept &= has_second | (best <= cap)
     m = np.stack([qi[rows[idx_first[accept]]], cols[idx_first[accept]]], axis=1).astype(np.int32)
     return m, best[accept].astype(np.float32)
+
+
+def epipolar_distances(F_t_from_q: NDArray[np.float64], kpts_q: NDArray, kpts_t: NDArray) -> NDArray[np.float32]:
+    """(N, M) distance in px of each target keypoint to each query keypoint's epipolar line.
+
+    `F_t_from_q` maps a query point x to its line l = F x in the target (x_tᵀ F x_q = 0).
+    """
+    q = np.c_[np.asarray(kpts_q, np.float64), np.ones(len(kpts_q))]
+    lines = q @ np.asarray(F_t_from_q, np.float64).T
+    norm = np.hypot(lines[:, 0], lines[:, 1])
+    lines /= np.where(norm > 0, norm, np.inf)[:, None]
+    t = np.c_[np.asarray(kpts_t, np.float64), np.ones(len(kpts_t))]
+    return np.abs(lines.astype(np.float32) @ t.astype(np.float32).T)
+
+
+def epipolar_pair_distance(F_t_from_q: NDArray[np.float64], pts_q: NDArray, pts_t: NDArray) -> NDArray[np.float64]:
+    """(K,) distance in px of each pts_t[k] to the epipolar line of pts_q[k] (see `epipolar_distances`)."""
+    q = np.c_[np.asarray(pts_q, np.float64), np.ones(len(pts_q))]
+    t = np.c_[np.asarray(pts_t, np.float64), np.ones(len(pts_t))]
+    lines = q @ np.asarray(F_t_from_q, np.float64).T
+    norm = np.hypot(lines[:, 0], lines[:, 1])
+    return np.abs((lines * t).sum(1)) / np.where(norm > 0, norm, np.inf)
+
+
+def epipolar_guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDArray,
+                          F_t_from_q: NDArray[np.float64], radius_px: float, ratio: float,
+                          chunk: int = 1024) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Ratio-test matching restricted to target keypoints within `radius_px` of the epipolar line.
+
+    The non-planar counterpart of `guided_match` (COLMAP's guided matching under F): a
+    fundamental matrix fitted to the first round's matches says on which line each query
+    keypoint's match must lie, so only the target keypoints in that band compete in the ratio
+    test and true matches that a global nearest neighbour rejected (a similar pattern elsewhere
+    in the image) come back. Float (SIFT) descriptors; queries are processed in chunks of
+    `chunk` rows so the (chunk, M) distance matrices stay small. A query with a single candidate
+    in its band is kept when its descriptor distance is below the median of the accepted
+    two-candidate matches.
+    """
+    empty = np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
+    if len(kpts_q) == 0 or len(kpts_t) < 2:
+        return empty
+    dt = np.asarray(desc_t, np.float32)
+    nt = (dt * dt).sum(1)
+    rows, cols, best, second = [], [], [], []
+    for lo in range(0, len(kpts_q), chunk):
+        dq = np.asarray(desc_q[lo:lo + chunk], np.float32)
+        d2 = (dq * dq).sum(1)[:, None] + nt[None, :] - 2.0 * (dq @ dt.T)
+        d2[epipolar_distances(F_t_from_q, kpts_q[lo:lo + chunk], kpts_t) > radius_px] = np.inf
+        two = np.argpartition(d2, 1, axis=1)[:, :2]
+        v = np.take_along_axis(d2, two, axis=1)
+        swap = v[:, 1] < v[:, 0]
+        two[swap] = two[swap][:, ::-1]
+        v[swap] = v[swap][:, ::-1]
+        ok = np.isfinite(v[:, 0])
+        rows.append(np.flatnonzero(ok) + lo)
+        cols.append(two[ok, 0])
+        best.append(np.sqrt(np.maximum(v[ok, 0], 0.0)))
+        second.append(np.sqrt(np.maximum(v[ok, 1], 0.0)))  # inf when the band holds one keypoint
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    b, s = np.concatenate(best).astype(np.float32), np.concatenate(second).astype(np.float32)
+    has_second = np.isfinite(s)
+    accept = b < ratio * s
+    if np.any(accept & has_second):
+        accept &= has_second | (b <= float(np.median(b[accept & has_second])))
+    else:
+        accept &= has_second
+    return np.stack([r[accept], c[accept]], axis=1).astype(np.int32), b[accept]
