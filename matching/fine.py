@@ -210,44 +210,52 @@ def epipolar_pair_distance(F_t_from_q: NDArray[np.float64], pts_q: NDArray, pts_
 
 def epipolar_guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDArray,
                           F_t_from_q: NDArray[np.float64], radius_px: float, ratio: float,
-                          chunk: int = 1024) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+                          chunk: int = 2048) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Ratio-test matching restricted to target keypoints within `radius_px` of the epipolar line.
 
     The non-planar counterpart of `guided_match` (COLMAP's guided matching under F): a
     fundamental matrix fitted to the first round's matches says on which line each query
     keypoint's match must lie, so only the target keypoints in that band compete in the ratio
     test and true matches that a global nearest neighbour rejected (a similar pattern elsewhere
-    in the image) come back. Float (SIFT) descriptors; queries are processed in chunks of
-    `chunk` rows so the (chunk, M) distance matrices stay small. A query with a single candidate
-    in its band is kept when its descriptor distance is below the median of the accepted
-    two-candidate matches.
+    in the image) come back. Float (SIFT) descriptors. The band holds a tiny fraction of the
+    target keypoints (a 2 px strip of a 1600 px image), so candidates are found first from the
+    (chunk, M) line distances and descriptor distances computed only for them: linear in the
+    number of candidates, not N x M x 128. A query with a single candidate in its band is kept
+    when its descriptor distance is below the median of the accepted two-candidate matches.
     """
     empty = np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
     if len(kpts_q) == 0 or len(kpts_t) < 2:
         return empty
+    dq_all = np.asarray(desc_q, np.float32)
     dt = np.asarray(desc_t, np.float32)
-    nt = (dt * dt).sum(1)
-    rows, cols, best, second = [], [], [], []
+    rows_l, cols_l = [], []
     for lo in range(0, len(kpts_q), chunk):
-        dq = np.asarray(desc_q[lo:lo + chunk], np.float32)
-        d2 = (dq * dq).sum(1)[:, None] + nt[None, :] - 2.0 * (dq @ dt.T)
-        d2[epipolar_distances(F_t_from_q, kpts_q[lo:lo + chunk], kpts_t) > radius_px] = np.inf
-        two = np.argpartition(d2, 1, axis=1)[:, :2]
-        v = np.take_along_axis(d2, two, axis=1)
-        swap = v[:, 1] < v[:, 0]
-        two[swap] = two[swap][:, ::-1]
-        v[swap] = v[swap][:, ::-1]
-        ok = np.isfinite(v[:, 0])
-        rows.append(np.flatnonzero(ok) + lo)
-        cols.append(two[ok, 0])
-        best.append(np.sqrt(np.maximum(v[ok, 0], 0.0)))
-        second.append(np.sqrt(np.maximum(v[ok, 1], 0.0)))  # inf when the band holds one keypoint
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    b, s = np.concatenate(best).astype(np.float32), np.concatenate(second).astype(np.float32)
-    has_second = np.isfinite(s)
-    accept = b < ratio * s
+        r, c = np.nonzero(epipolar_distances(F_t_from_q, kpts_q[lo:lo + chunk], kpts_t) <= radius_px)
+        rows_l.append(r + lo)
+        cols_l.append(c)
+    rows, cols = np.concatenate(rows_l), np.concatenate(cols_l)
+    if len(rows) == 0:
+        return empty
+    dd = np.empty(len(rows), np.float32)
+    for lo in range(0, len(rows), 1 << 16):  # bounded temporaries
+        diff = dq_all[rows[lo:lo + (1 << 16)]] - dt[cols[lo:lo + (1 << 16)]]
+        dd[lo:lo + (1 << 16)] = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    order = np.lexsort((dd, rows))
+    rows, cols, dd = rows[order], cols[order], dd[order]
+    first = np.ones(len(rows), bool)
+    first[1:] = rows[1:] != rows[:-1]
+    idx = np.flatnonzero(first)
+    nxt = idx + 1
+    has_second = np.zeros(len(idx), bool)
+    ok = nxt < len(rows)
+    has_second[ok] = rows[nxt[ok]] == rows[idx[ok]]
+    best = dd[idx]
+    second = np.full(len(idx), np.inf, np.float32)
+    second[has_second] = dd[idx[has_second] + 1]
+    accept = best < ratio * second
     if np.any(accept & has_second):
-        accept &= has_second | (b <= float(np.median(b[accept & has_second])))
+        accept &= has_second | (best <= float(np.median(best[accept & has_second])))
     else:
         accept &= has_second
-    return np.stack([r[accept], c[accept]], axis=1).astype(np.int32), b[accept]
+    m = np.stack([rows[idx[accept]], cols[idx[accept]]], axis=1).astype(np.int32)
+    return m, best[accept].astype(np.float32)
