@@ -113,6 +113,33 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
     return FineMatches(np.concatenate(kpts_ref), ft.kpts, m_all, d_all, per_view)
 
 
+def candidate_ratio_test(rows: NDArray, cols: NDArray, dd: NDArray, ratio: float
+                         ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float32]]:
+    """Lowe's ratio test over sparse candidates: (query, target, distance) of the accepted matches.
+
+    `rows[k]`, `cols[k]`, `dd[k]`: query index, target index and descriptor distance of the k-th
+    candidate pair (any order). Each query keeps its nearest candidate when it beats the second
+    nearest by `ratio`; a query with a single candidate is kept when its distance is at most the
+    median of the accepted two-candidate matches (all singletons are kept when there are none).
+    """
+    order = np.lexsort((dd, rows))
+    rows, cols, dd = rows[order], cols[order], dd[order]
+    first = np.ones(len(rows), bool)
+    first[1:] = rows[1:] != rows[:-1]
+    idx = np.flatnonzero(first)
+    nxt = idx + 1
+    has_second = np.zeros(len(idx), bool)
+    ok = nxt < len(rows)
+    has_second[ok] = rows[nxt[ok]] == rows[idx[ok]]
+    best = dd[idx]
+    second = np.full(len(idx), np.inf, np.float32)
+    second[has_second] = dd[idx[has_second] + 1]
+    accept = best < ratio * second
+    if np.any(accept & has_second):
+        accept &= has_second | (best <= float(np.median(best[accept & has_second])))
+    return rows[idx[accept]], cols[idx[accept]], best[accept].astype(np.float32)
+
+
 def guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDArray,
                  H_t_from_q: NDArray[np.float64], radius_px: float, ratio: float,
                  ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
@@ -166,24 +193,8 @@ def guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDAr
     if len(rows) == 0:
         return empty
     dd = np.linalg.norm(desc_q[qi[rows]].astype(np.float32) - desc_t[cols].astype(np.float32), axis=1)
-    order = np.lexsort((dd, rows))
-    rows, cols, dd = rows[order], cols[order], dd[order]
-    first = np.ones(len(rows), bool)
-    first[1:] = rows[1:] != rows[:-1]
-    idx_first = np.flatnonzero(first)
-    has_second = np.zeros(len(idx_first), bool)
-    nxt = idx_first + 1
-    valid_nxt = nxt < len(rows)
-    has_second[valid_nxt] = rows[nxt[valid_nxt]] == rows[idx_first[valid_nxt]]
-    best = dd[idx_first]
-    second = np.full(len(idx_first), np.inf, np.float32)
-    second[has_second] = dd[idx_first[has_second] + 1]
-    accept = best < ratio * second
-    if np.any(accept & has_second):
-        cap = float(np.median(best[accept & has_second]))
-        accept &= has_second | (best <= cap)
-    m = np.stack([qi[rows[idx_first[accept]]], cols[idx_first[accept]]], axis=1).astype(np.int32)
-    return m, best[accept].astype(np.float32)
+    q, t, best = candidate_ratio_test(rows, cols, dd, ratio)
+    return np.stack([qi[q], t], axis=1).astype(np.int32), best
 
 
 def epipolar_distances(F_t_from_q: NDArray[np.float64], kpts_q: NDArray, kpts_t: NDArray) -> NDArray[np.float32]:
@@ -240,22 +251,5 @@ def epipolar_guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, des
     for lo in range(0, len(rows), 1 << 16):  # bounded temporaries
         diff = dq_all[rows[lo:lo + (1 << 16)]] - dt[cols[lo:lo + (1 << 16)]]
         dd[lo:lo + (1 << 16)] = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-    order = np.lexsort((dd, rows))
-    rows, cols, dd = rows[order], cols[order], dd[order]
-    first = np.ones(len(rows), bool)
-    first[1:] = rows[1:] != rows[:-1]
-    idx = np.flatnonzero(first)
-    nxt = idx + 1
-    has_second = np.zeros(len(idx), bool)
-    ok = nxt < len(rows)
-    has_second[ok] = rows[nxt[ok]] == rows[idx[ok]]
-    best = dd[idx]
-    second = np.full(len(idx), np.inf, np.float32)
-    second[has_second] = dd[idx[has_second] + 1]
-    accept = best < ratio * second
-    if np.any(accept & has_second):
-        accept &= has_second | (best <= float(np.median(best[accept & has_second])))
-    else:
-        accept &= has_second
-    m = np.stack([rows[idx[accept]], cols[idx[accept]]], axis=1).astype(np.int32)
-    return m, best[accept].astype(np.float32)
+    q, t, best = candidate_ratio_test(rows, cols, dd, ratio)
+    return np.stack([q, t], axis=1).astype(np.int32), best

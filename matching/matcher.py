@@ -17,6 +17,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from .coarse import CoarseConfig, coarse_search, original_features, rank_views, view_features
 from .escalation import Attempt, EscalationConfig, escalate
@@ -282,22 +283,13 @@ class ExtraAffineMatcher:
         ref = att.reference
         H_t_from_ref = res.H_1_from_0 if ref == 0 else np.linalg.inv(res.H_1_from_0)
         ft = original_features(store, names[1 - ref], det)
-        kpts_ref, pairs, dists = [], [], []
-        offset = 0
-        size = store.image(names[ref]).shape[1::-1]
-        for view in att.views:
-            rendered = capped_view(view, size, cfg.fine.max_area_ratio)
-            fv = view_features(store, names[ref], rendered, det, cfg.fine.interp, cfg.fine.antialias)
-            m, d = guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, H_t_from_ref,
-                                cfg.guided_px, cfg.guided_ratio)
-            kpts_ref.append(fv.kpts[m[:, 0]])
-            pairs.append(np.stack([np.arange(len(m)) + offset, m[:, 1]], axis=1))
-            dists.append(d)
-            offset += len(m)
-        if offset == 0:
+        kr, m_all, d_all = self._rematch_views(
+            store, names[ref], att.views, ft,
+            lambda fv: guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, H_t_from_ref,
+                                    cfg.guided_px, cfg.guided_ratio))
+        if len(m_all) == 0:
             return res
-        m_all, d_all = unique_train(np.concatenate(pairs).astype(np.int32), np.concatenate(dists))
-        kr = np.concatenate(kpts_ref)
+        m_all, d_all = unique_train(m_all, d_all)
         used = np.unique(m_all[:, 0])
         remap = np.full(len(kr), -1, np.int64)
         remap[used] = np.arange(len(used))
@@ -313,6 +305,29 @@ class ExtraAffineMatcher:
             return res
         out.H_1_from_0, out.inlier_mask = H, inl
         return out
+
+    def _rematch_views(self, store: FeatureStore, ref_name: str, views, ft, match_fn,
+                       first: FineMatches | None = None) -> tuple[NDArray, NDArray, NDArray]:
+        """(reference keypoints, (K, 2) matches into them and into `ft`, distances) of every view
+        re-matched by `match_fn(view_features) -> (matches, distances)`, after `first`'s when given."""
+        cfg = self.cfg
+        size = store.image(ref_name).shape[1::-1]
+        kpts_ref, pairs, dists = [], [], []
+        offset = 0
+        if first is not None:
+            kpts_ref, pairs, dists, offset = [first.kpts_ref], [first.matches], [first.distances], len(first.kpts_ref)
+        for view in views:
+            rendered = capped_view(view, size, cfg.fine.max_area_ratio)
+            fv = view_features(store, ref_name, rendered, cfg.fine.detector, cfg.fine.interp, cfg.fine.antialias)
+            m, d = match_fn(fv)
+            kpts_ref.append(fv.kpts[m[:, 0]])
+            pairs.append(np.stack([np.arange(len(m)) + offset, m[:, 1]], axis=1))
+            dists.append(d)
+            offset += len(m)
+        kr = np.concatenate(kpts_ref) if kpts_ref else np.zeros((0, 2), np.float32)
+        m_all = np.concatenate(pairs).astype(np.int32) if pairs else np.zeros((0, 2), np.int32)
+        d_all = np.concatenate(dists).astype(np.float32) if dists else np.zeros(0, np.float32)
+        return kr, m_all, d_all
 
     def _guided_epipolar(self, store: FeatureStore, names: tuple[str, str], att: Attempt,
                          res: PairResult) -> PairResult:
@@ -330,21 +345,11 @@ class ExtraAffineMatcher:
         if F is None or F.shape != (3, 3) or mask is None or int(mask.sum()) < cfg.min_result_inliers:
             return res
         ft = original_features(store, names[1 - ref], det)
-        size = store.image(names[ref]).shape[1::-1]
-        kpts_ref, pairs, dists = [fm.kpts_ref], [fm.matches], [fm.distances]
-        offset = len(fm.kpts_ref)
-        for view in att.views:
-            rendered = capped_view(view, size, cfg.fine.max_area_ratio)
-            fv = view_features(store, names[ref], rendered, det, cfg.fine.interp, cfg.fine.antialias)
-            m, d = epipolar_guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, F,
-                                         cfg.guided_epipolar_px, cfg.guided_epipolar_ratio)
-            kpts_ref.append(fv.kpts[m[:, 0]])
-            pairs.append(np.stack([np.arange(len(m)) + offset, m[:, 1]], axis=1))
-            dists.append(d)
-            offset += len(m)
-        kr = np.concatenate(kpts_ref)
-        m_all = np.concatenate(pairs).astype(np.int32)
-        d_all = np.concatenate(dists).astype(np.float32)
+        kr, m_all, d_all = self._rematch_views(
+            store, names[ref], att.views, ft,
+            lambda fv: epipolar_guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, F,
+                                             cfg.guided_epipolar_px, cfg.guided_epipolar_ratio),
+            first=fm)
         # one match per reference position and per target keypoint (first round wins ties: it comes first)
         key = np.c_[np.round(kr[m_all[:, 0]] * 4).astype(np.int64), m_all[:, 1].astype(np.int64)]
         _, first = np.unique(key, axis=0, return_index=True)

@@ -54,7 +54,7 @@ def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]) -> tuple
     if len(matches) == 0:
         return matches, dist
     order = np.lexsort((dist, matches[:, 1]))
-    m, d = matches[order], dist[order]
+    m = matches[order]
     first = np.ones(len(m), bool)
     first[1:] = m[1:, 1] != m[:-1, 1]
     keep = np.sort(order[first])

@@ -9,7 +9,6 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from matching.errors import InputError
 from matching.io import load_color, load_gray, read_homography
 from matching.metrics import DEFAULT_TH, gt_reference, precision
 from matching.registry import METHODS, get_matcher

@@ -31,8 +31,6 @@ from __future__ import annotations
 
 from .jsonio import write_json_atomic  # noqa: F401  (re-exported: pipeline, stock)
 
-import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any

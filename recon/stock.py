@@ -41,7 +41,6 @@ missing scene folder or a bad argument raises (InputError / UserError / ValueErr
 from __future__ import annotations
 
 import os
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path

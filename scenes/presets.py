@@ -10,7 +10,7 @@ plane's normal and the ray from the plane's centre to the camera (0 = frontal, 9
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -6,7 +6,6 @@ import dataclasses
 
 import cv2
 import numpy as np
-import pytest
 
 from matching.fine import epipolar_distances, epipolar_guided_match, epipolar_pair_distance
 
