@@ -219,9 +219,81 @@ def epipolar_pair_distance(F_t_from_q: NDArray[np.float64], pts_q: NDArray, pts_
     return np.abs((lines * t).sum(1)) / np.where(norm > 0, norm, np.inf)
 
 
+def _runs(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(row, position) for every position in [lo[i], hi[i]) of every row i, vectorised."""
+    cnt = np.maximum(hi - lo, 0)
+    total = int(cnt.sum())
+    rows = np.repeat(np.arange(len(lo)), cnt)
+    starts = np.repeat(lo - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt)
+    return rows, np.arange(total) + starts
+
+
+def epipolar_band_candidates(F_t_from_q: NDArray[np.float64], kpts_q: NDArray, kpts_t: NDArray,
+                             radius_px: float, near_px: float = 64.0) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(rows, cols): every (query, target) pair whose target lies within `radius_px` of the
+    query's epipolar line, the same set as thresholding `epipolar_distances` but without the
+    (N, M) matrix.
+
+    All lines F x pass through the target epipole e (Fᵀ e = 0). A target at distance rho from
+    e, in direction alpha (mod 180°), lies within r of a line through e of direction theta iff
+    rho |sin(alpha - theta)| <= r, so with rho >= R only targets with |alpha - theta| <=
+    asin(r / R) can qualify. Targets are grouped in rings of rho ([R, 4R), [4R, 16R), ...,
+    R = `near_px`), each sorted by alpha and searched with a window that shrinks as its ring
+    grows; the few targets nearer the epipole than `near_px` are tested against every line;
+    with the epipole at infinity (parallel lines) the search runs on each target's offset
+    along the lines' common normal. Every candidate is then checked exactly.
+    """
+    kq = np.asarray(kpts_q, np.float64).reshape(-1, 2)
+    kt = np.asarray(kpts_t, np.float64).reshape(-1, 2)
+    F = np.asarray(F_t_from_q, np.float64)
+    lines = np.c_[kq, np.ones(len(kq))] @ F.T
+    norm = np.hypot(lines[:, 0], lines[:, 1])
+    valid = norm > 0
+    lines /= np.where(valid, norm, 1.0)[:, None]
+    e = np.linalg.svd(F.T)[2][-1]
+    found_r: list[NDArray[np.int64]] = []
+    found_c: list[NDArray[np.int64]] = []
+
+    def search(keys: NDArray, members: NDArray[np.int64], lo_key: NDArray, hi_key: NDArray) -> None:
+        order = np.argsort(keys, kind="stable")
+        s = keys[order]
+        r, pos = _runs(np.searchsorted(s, lo_key, "left"), np.searchsorted(s, hi_key, "right"))
+        found_r.append(r)
+        found_c.append(members[order[pos]])
+
+    if abs(e[2]) <= 1e-12 * np.hypot(e[0], e[1]):  # epipole at infinity: parallel lines
+        n = np.array([-e[1], e[0]]) / np.hypot(e[0], e[1])  # their common normal
+        sign = np.where(lines[:, :2] @ n < 0, -1.0, 1.0)
+        offset = -lines[:, 2] * sign
+        search(kt @ n, np.arange(len(kt)), offset - 1.5 * radius_px, offset + 1.5 * radius_px)
+    else:
+        v = kt - e[:2] / e[2]
+        rho = np.hypot(v[:, 0], v[:, 1])
+        alpha = np.mod(np.arctan2(v[:, 1], v[:, 0]), np.pi)
+        theta = np.mod(np.arctan2(-lines[:, 0], lines[:, 1]), np.pi)  # direction (b, -a) of a x + b y + c = 0
+        ring_lo = near_px
+        while np.any(rho >= ring_lo):
+            ring = np.flatnonzero((rho >= ring_lo) & (rho < 4.0 * ring_lo))
+            if len(ring):
+                w = 1.05 * np.arcsin(min(1.0, radius_px / ring_lo))
+                for wrap in (-np.pi, 0.0, np.pi):  # windows that cross 0 / 180 degrees
+                    search(alpha[ring], ring, theta + wrap - w, theta + wrap + w)
+            ring_lo *= 4.0
+        near = np.flatnonzero(rho < near_px)
+        if len(near):
+            found_r.append(np.repeat(np.arange(len(kq)), len(near)))
+            found_c.append(np.tile(near, len(kq)))
+    if not found_r:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    rows, cols = np.concatenate(found_r), np.concatenate(found_c)
+    dist = np.abs((lines[rows, :2] * kt[cols]).sum(1) + lines[rows, 2])
+    keep = (dist <= radius_px) & valid[rows]
+    return rows[keep], cols[keep]
+
+
 def epipolar_guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDArray,
                           F_t_from_q: NDArray[np.float64], radius_px: float, ratio: float,
-                          chunk: int = 2048) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+                          ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Ratio-test matching restricted to target keypoints within `radius_px` of the epipolar line.
 
     The non-planar counterpart of `guided_match` (COLMAP's guided matching under F): a
@@ -229,22 +301,18 @@ def epipolar_guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, des
     keypoint's match must lie, so only the target keypoints in that band compete in the ratio
     test and true matches that a global nearest neighbour rejected (a similar pattern elsewhere
     in the image) come back. Float (SIFT) descriptors. The band holds a tiny fraction of the
-    target keypoints (a 2 px strip of a 1600 px image), so candidates are found first from the
-    (chunk, M) line distances and descriptor distances computed only for them: linear in the
-    number of candidates, not N x M x 128. A query with a single candidate in its band is kept
-    when its descriptor distance is below the median of the accepted two-candidate matches.
+    target keypoints (a 2 px strip of a 1600 px image), so the candidates are found first
+    (`epipolar_band_candidates`, by binary search) and descriptor distances computed only for
+    them: linear in the number of candidates, not N x M x 128. A query with a single candidate
+    in its band is kept when its descriptor distance is below the median of the accepted
+    two-candidate matches.
     """
     empty = np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
     if len(kpts_q) == 0 or len(kpts_t) < 2:
         return empty
     dq_all = np.asarray(desc_q, np.float32)
     dt = np.asarray(desc_t, np.float32)
-    rows_l, cols_l = [], []
-    for lo in range(0, len(kpts_q), chunk):
-        r, c = np.nonzero(epipolar_distances(F_t_from_q, kpts_q[lo:lo + chunk], kpts_t) <= radius_px)
-        rows_l.append(r + lo)
-        cols_l.append(c)
-    rows, cols = np.concatenate(rows_l), np.concatenate(cols_l)
+    rows, cols = epipolar_band_candidates(F_t_from_q, kpts_q, kpts_t, radius_px)
     if len(rows) == 0:
         return empty
     dd = np.empty(len(rows), np.float32)

@@ -6,8 +6,10 @@ import dataclasses
 
 import cv2
 import numpy as np
+import pytest
 
-from matching.fine import epipolar_distances, epipolar_guided_match, epipolar_pair_distance
+from matching.fine import (epipolar_band_candidates, epipolar_distances, epipolar_guided_match,
+                           epipolar_pair_distance)
 
 
 def _skew(t):
@@ -19,6 +21,32 @@ def _F_from(Pa, Pb, Ka, Kb):
     R = Pb[:, :3] @ Pa[:, :3].T
     t = Pb[:, 3] - R @ Pa[:, 3]
     return np.linalg.inv(Kb).T @ _skew(t) @ R @ np.linalg.inv(Ka)
+
+
+@pytest.mark.parametrize("case", ["general", "parallel", "epipole_inside", "epipole_far"])
+def test_band_candidates_equal_the_brute_force_set(case):
+    """The binary-search band finds exactly the pairs within the radius (float64 brute force),
+    for an epipole anywhere: general, at infinity, inside the image, far outside it."""
+    rng = np.random.default_rng(["general", "parallel", "epipole_inside", "epipole_far"].index(case))
+    K = np.array([[1000.0, 0, 800], [0, 1000, 600], [0, 0, 1]])
+    R, t = cv2.Rodrigues(np.array([0.1, 0.5, -0.2]))[0], np.array([0.7, -0.3, 0.4])
+    if case == "parallel":
+        R, t = np.eye(3), np.array([1.0, 0.2, 0.0])
+    elif case == "epipole_inside":
+        R, t = cv2.Rodrigues(np.array([0.0, 0.05, 0.0]))[0], np.array([0.0, 0.0, 1.0])
+    elif case == "epipole_far":
+        R, t = cv2.Rodrigues(np.array([0.0, 0.2, 0.0]))[0], np.array([1.0, 0.0, 1e-4])
+    F = np.linalg.inv(K).T @ _skew(t) @ R @ np.linalg.inv(K)
+    kq = rng.uniform([0, 0], [1600, 1200], size=(1500, 2))
+    kt = rng.uniform([0, 0], [1600, 1200], size=(2000, 2))
+    rows, cols = epipolar_band_candidates(F, kq, kt, 1.5)
+    lines = np.c_[kq, np.ones(len(kq))] @ F.T
+    lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
+    d = np.abs(lines @ np.c_[kt, np.ones(len(kt))].T)
+    expected = set(zip(*np.nonzero(d <= 1.5)))
+    got = set(zip(rows.tolist(), cols.tolist()))
+    assert len(expected) > 500
+    assert got == {(int(a), int(b)) for a, b in expected}
 
 
 def test_band_brings_back_matches_that_a_decoy_hides():
