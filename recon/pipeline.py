@@ -615,6 +615,8 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
                 rec = res.reconstruction
                 report.num_models, report.model_sizes = res.num_models, res.model_sizes
                 report.sfm_growth = res.growth
+                if res.hook_error:
+                    warn(f"the SfM progress hook failed and was switched off: {res.hook_error}")
                 if rec is not None:
                     sfm.write_model_atomic(rec, model_dir)
                     state.update(sfm_fingerprint=sfm_fp, num_models=res.num_models, model_sizes=res.model_sizes,

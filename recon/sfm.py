@@ -107,6 +107,7 @@ class SfmResult:
     num_models: int
     model_sizes: list[int]  # registered images per model, largest first
     growth: list[dict] = field(default_factory=list)  # one GrowthStep.to_dict() per registration
+    hook_error: str | None = None  # the first exception raised by on_step (later steps were not reported)
 
 
 @dataclass(frozen=True)
@@ -141,7 +142,9 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
     `pycolmap.incremental_mapping`, whose callbacks take no arguments: after the initial pair and
     after every further registration, `on_step(step, reconstruction)` receives the live model
     (read it inside the hook, it changes afterwards) so callers can show the reconstruction
-    growing. Nothing is written to disk here (see `write_model_atomic`).
+    growing. An exception from the hook is recorded in `SfmResult.hook_error` and the hook is
+    not called again: mapping always finishes. Nothing is written to disk here (see
+    `write_model_atomic`).
     """
     opts = options
     opts.image_path = str(image_dir)  # for extract_colors
@@ -149,6 +152,7 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
     growth: list[dict] = []
     order: dict[int, list[str]] = {}
     seen: dict[int, set[int]] = {}
+    hook_errors: list[str] = []
 
     def hook() -> None:
         idx = manager.size() - 1
@@ -162,8 +166,11 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
         step = GrowthStep(step=len(growth), model=idx, image=names[-1] if names else "", images=tuple(names),
                           registered_images=len(reg), num_points3D=int(rec.num_points3D()))
         growth.append(step.to_dict())
-        if on_step is not None:
-            on_step(step, rec)
+        if on_step is not None and not hook_errors:
+            try:
+                on_step(step, rec)
+            except Exception as e:  # e.g. a logging sink gone: never worth losing the model; no more calls
+                hook_errors.append(f"{type(e).__name__}: {e}")
 
     db = pycolmap.Database.open(str(db_path))
     try:
@@ -177,7 +184,8 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
     recs = [(i, r) for i, r in recs if r.num_reg_images() > 0]
     recs.sort(key=lambda ir: (ir[1].num_reg_images(), ir[1].num_points3D()), reverse=True)
     best = recs[0][1] if recs else None
-    return SfmResult(best, len(recs), [int(r.num_reg_images()) for _, r in recs], growth)
+    return SfmResult(best, len(recs), [int(r.num_reg_images()) for _, r in recs], growth,
+                     hook_errors[0] if hook_errors else None)
 
 
 def write_model_atomic(rec: pycolmap.Reconstruction, model_dir: str | Path) -> None:

@@ -48,6 +48,9 @@ def test_compare_stock_fails_ours_succeeds_via_cli(facade, tmp_path, capsys):
     assert "Points3D:positions" in cols["/world/extra_affine/points"]
     assert not any(k.startswith("/world/stock-default/") for k in cols)  # stock found no model
     assert "TextDocument:text" in cols["/summary"]
+    from recon.cmd_view import resolve_recording
+
+    assert resolve_recording(out) == out / "compare.rrd"  # `recon view OUT` finds it
 
 
 def _columns(rrd: Path) -> dict[str, set[str]]:

@@ -144,10 +144,20 @@ def test_database_holds_merged_keypoints_with_colmap_offset(first_run):
 @needs_data
 def test_same_output_whatever_the_number_of_workers(scene, first_run, tmp_path):
     out1, rep1, _ = first_run
-    seen_pairs, seen_models = [], []
+    seen_pairs, seen_models, seen_steps = [], [], []
+
+    def broken_step_hook(step, live):  # a live logger that dies after the first step
+        seen_steps.append((step.step, live.num_reg_images()))
+        raise RuntimeError("sink gone")
+
     rep2 = run_scene(scene, _cfg(tmp_path / "out", workers=1),
                      on_pair=lambda i, a, b, r, cached: seen_pairs.append((i, a, b, r.num_matches, cached)),
-                     on_model=lambda rec, rep: seen_models.append((rec.num_reg_images(), rep.status)))
+                     on_model=lambda rec, rep: seen_models.append((rec.num_reg_images(), rep.status)),
+                     on_sfm_step=broken_step_hook)
+    # the SfM hook saw the initial pair, failed, was switched off, and mapping went on
+    assert seen_steps == [(0, 2)]
+    assert any("sink gone" in w for w in rep2.warnings)
+    assert len(rep2.sfm_growth) == rep2.registered_images - 1
     # the hooks (for live logging) saw every pair once and the final model
     assert sorted(i for i, *_ in seen_pairs) == list(range(len(rep2.pairs)))
     assert all(not cached for *_, cached in seen_pairs)

@@ -1,0 +1,68 @@
+"""Markdown tables for the README from a `recon bench scenes --json` / `bench_scenes.py` file.
+
+    python benchmarks/scene_tables.py benchmarks/results/rendered.json
+
+One row per scene and method: registered images, median relative rotation error against the
+ground truth, median camera-centre error after the similarity alignment (relative to the
+scene's camera spread), and the median COLMAP-verified inliers over the pairs of neighbouring
+views (adjacent in name order: the rendered arcs name their views in azimuth order) and over
+the wider pairs. Pairs a method did not verify count as 0, so a method that loses pairs shows it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def inliers_by_neighbourhood(pairs: list[dict]) -> tuple[float, float]:
+    """(median over neighbouring-view pairs, median over the others) of verified inliers."""
+    names = sorted({p["image0"] for p in pairs} | {p["image1"] for p in pairs})
+    pos = {n: i for i, n in enumerate(names)}
+    near = [p.get("verified_inliers", 0) for p in pairs if abs(pos[p["image0"]] - pos[p["image1"]]) == 1]
+    wide = [p.get("verified_inliers", 0) for p in pairs if abs(pos[p["image0"]] - pos[p["image1"]]) > 1]
+    med = lambda v: float(np.median(v)) if v else float("nan")  # noqa: E731
+    return med(near), med(wide)
+
+
+def rows(data: dict) -> list[str]:
+    out = ["| scene (views) | method | registered | rel. rot. err. median | centre err. (rel.) | "
+           "median verified inliers, neighbours / wider pairs | 3D points | total s |",
+           "|---|---|---|---|---|---|---|---|"]
+    for res in data["scenes"]:
+        scene = Path(res["scene"]).name
+        first = True
+        for name, m in res["methods"].items():
+            near, wide = inliers_by_neighbourhood(m.get("pairs") or [])
+            reg = f"{m.get('registered_images', 0)}/{m.get('num_images', 0)}"
+            rot = m.get("rel_rot_err_deg_median")
+            cen = m.get("center_err_rel_median")
+            label = "extra-affine" if name == "extra_affine" else name.replace("-", " ")
+            secs = m.get("seconds_total")
+            out.append(f"| {scene + ' (' + str(m.get('num_images', 0)) + ')' if first else ''} | {label} | {reg} | "
+                       f"{'-' if rot is None else f'{rot:.2f}°'} | {'-' if cen is None else f'{100 * cen:.2f} %'} | "
+                       f"{near:.0f} / {wide:.0f} | {m.get('num_points3D', 0)} | "
+                       f"{'-' if secs is None else f'{secs:.1f}'} |")
+            first = False
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("json", type=Path)
+    args = ap.parse_args(argv)
+    try:
+        data = json.loads(args.json.read_text(encoding="utf-8"))
+        print("\n".join(rows(data)))
+    except (OSError, ValueError, KeyError) as e:
+        print(f"scene_tables: {args.json}: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
