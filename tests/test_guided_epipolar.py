@@ -113,3 +113,27 @@ def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
     assert n0 > 30, out
     assert good1 >= 1.3 * good0, out
     assert good1 / n1 >= good0 / n0, out  # the F filter also drops first-round outliers
+
+
+def test_guided_round_skips_pairs_without_trustworthy_geometry(shared_data):
+    """sacre_coeur (real photos): an overlapping pair gains matches; a pair whose first-round
+    F holds few of its matches is left exactly as the first round returned it (without the gate
+    its band collected chance matches that wrecked the model)."""
+    from matching.io import load_gray
+    from matching.store import FeatureStore
+    from recon.pipeline import make_matcher
+
+    d = shared_data / "scenes" / "sacre_coeur" / "images"
+    good = ("02928139_3448003521.jpg", "44120379_8371960244.jpg")
+    weak = ("10265353_3838484249.jpg", "17295357_9106075285.jpg")
+    store = FeatureStore()
+    for n in {*good, *weak}:
+        store.add_image(n, load_gray(d / n))
+    counts = {}
+    for guided in (False, True):
+        m = make_matcher("extra-affine")
+        m.cfg = dataclasses.replace(m.cfg, guided_epipolar=guided)
+        counts[guided] = {pair: m.match(store, *pair).num_matches for pair in (good, weak)}
+    assert counts[True][good] > 1.2 * counts[False][good], counts
+    assert counts[False][weak] >= 15, counts  # the first round does return matches...
+    assert counts[True][weak] == counts[False][weak], counts  # ...but the gate keeps the band off
