@@ -30,10 +30,9 @@ from numpy.typing import NDArray
 
 from .compare import OURS_KEY, load_model
 from .evaluate import center, poses_from_estimate, umeyama
-from .rerun_log import Sink, _esc
+from .rerun_log import Sink, _esc, log_camera
 
 COMPARE_RECORDING = "compare.rrd"
-THUMB_PX = 320
 METHOD_COLORS: dict[str, tuple[int, int, int]] = {
     OURS_KEY: (30, 144, 255),  # blue
     "stock-default": (255, 140, 0),  # orange
@@ -103,18 +102,6 @@ def _read(method: str, out: str | Path) -> _Model | None:
     return _Model(method, poses, intr, xyz)
 
 
-def _log_camera(rec: Any, ent: str, P: NDArray, K: NDArray, size: tuple[int, int], color) -> None:
-    import rerun as rr
-
-    w, h = size
-    f = THUMB_PX / max(w, h)
-    sw, sh = max(1, round(w * f)), max(1, round(h * f))
-    rec.log(ent, rr.Transform3D(translation=P[:, 3], mat3x3=P[:, :3], relation=rr.TransformRelation.ChildFromParent),
-            static=True)
-    rec.log(f"{ent}/image", rr.Pinhole(image_from_camera=np.diag([sw / w, sh / h, 1.0]) @ K, resolution=[sw, sh],
-                                       image_plane_distance=0.3, color=color), static=True)
-
-
 def summary_markdown(res: dict[str, Any], notes: dict[str, str], frame: str) -> str:
     from rich.console import Console
 
@@ -164,8 +151,8 @@ def log_comparison(sink: Sink, res: dict[str, Any], gt: dict[str, Any] | None = 
         rec = logger.open_sink()
         if gt:
             for n, g in sorted(gt.items()):
-                _log_camera(rec, f"world/gt/cameras/{_esc(n)}", np.asarray(g.cam_from_world, np.float64),
-                            np.asarray(g.K, np.float64), tuple(g.size), GT_COLOR)
+                log_camera(rec, f"world/gt/cameras/{_esc(n)}", np.asarray(g.cam_from_world, np.float64),
+                           np.asarray(g.K, np.float64), tuple(g.size), color=GT_COLOR, plane_distance=0.3)
             notes["gt"] = f"{len(gt)} cameras (reference frame)"
         fallback = iter(FALLBACK_COLORS)
         for m, md in models.items():
@@ -179,7 +166,7 @@ def log_comparison(sink: Sink, res: dict[str, Any], gt: dict[str, Any] | None = 
                     static=True)
             for n, P in sorted(md.poses.items()):
                 K, size = md.intrinsics[n]
-                _log_camera(rec, f"{base}/cameras/{_esc(n)}", sim.pose(P), K, size, color)
+                log_camera(rec, f"{base}/cameras/{_esc(n)}", sim.pose(P), K, size, color=color, plane_distance=0.3)
         ours = methods.get(OURS_KEY, {}).get("pairs") or next(iter(methods.values()), {}).get("pairs") or []
         order = [(p["image0"], p["image1"]) for p in ours]
         for m, row in methods.items():

@@ -137,6 +137,30 @@ def _jpeg(img_bgr: NDArray[np.uint8]) -> bytes:
     return buf.tobytes()
 
 
+def log_camera(rec: Any, ent: str, cam_from_world: NDArray[np.float64], K: NDArray[np.float64],
+               size: tuple[int, int], *, static: bool = True, color: tuple[int, int, int] | None = None,
+               image_bgr: NDArray[np.uint8] | None = None, plane_distance: float = 0.5) -> None:
+    """A camera as `ent` (`Transform3D` of COLMAP's cam_from_world (3x4), logged as
+    ChildFromParent) and `ent/image` (`Pinhole` with K scaled to the picture, or to `THUMB_PX`
+    without one, frustum drawn in `color`; `image_bgr` as a JPEG)."""
+    import rerun as rr
+
+    P = np.asarray(cam_from_world, np.float64)
+    w, h = size
+    if image_bgr is not None:
+        sh, sw = image_bgr.shape[:2]
+    else:
+        f = THUMB_PX / max(w, h)
+        sw, sh = max(1, round(w * f)), max(1, round(h * f))
+    rec.log(ent, rr.Transform3D(translation=P[:, 3], mat3x3=P[:, :3], relation=rr.TransformRelation.ChildFromParent),
+            static=static)
+    rec.log(f"{ent}/image", rr.Pinhole(image_from_camera=np.diag([sw / w, sh / h, 1.0]) @ np.asarray(K, np.float64),
+                                       resolution=[sw, sh], image_plane_distance=plane_distance, color=color),
+            static=static)
+    if image_bgr is not None:
+        rec.log(f"{ent}/image", rr.EncodedImage(contents=_jpeg(image_bgr), media_type="image/jpeg"), static=static)
+
+
 def coarse_grid(result: PairResult) -> tuple[NDArray[np.float32], list[str], list[tuple[int, int]]]:
     """(grid, row labels, chosen cells): coarse score per simulated view, NaN where none.
 
@@ -425,29 +449,16 @@ class RerunLogger:
 
     def _log_camera(self, rec: Any, ent: str, img: Any, *, with_image: bool, static: bool,
                     color: tuple[int, int, int] | None = None) -> None:
-        """A registered image as `ent` (pose: COLMAP cam_from_world as ChildFromParent) and
-        `ent/image` (Pinhole scaled to the thumbnail, plus the JPEG thumbnail when `with_image`)."""
-        import rerun as rr
-
+        """A registered pycolmap image as a camera (`log_camera`), with its JPEG thumbnail when
+        `with_image`."""
         cam = img.camera
         pose = img.cam_from_world()
-        rec.log(ent, rr.Transform3D(translation=np.asarray(pose.translation, np.float64),
-                                    mat3x3=np.asarray(pose.rotation.matrix(), np.float64),
-                                    relation=rr.TransformRelation.ChildFromParent), static=static)
-        K = np.asarray(cam.calibration_matrix(), np.float64)
+        P = np.hstack([np.asarray(pose.rotation.matrix(), np.float64),
+                       np.asarray(pose.translation, np.float64).reshape(3, 1)])
         thumb = self._thumb(img.name) if with_image else None
-        if thumb is not None:
-            small, _ = _resize_longest(thumb[0], THUMB_PX)
-            h, w = small.shape[:2]
-        else:
-            small = None
-            s = THUMB_PX / max(cam.width, cam.height)
-            w, h = max(1, round(cam.width * s)), max(1, round(cam.height * s))
-        Ks = np.diag([w / cam.width, h / cam.height, 1.0]) @ K
-        rec.log(f"{ent}/image", rr.Pinhole(image_from_camera=Ks, resolution=[w, h], image_plane_distance=0.5,
-                                           color=color), static=static)
-        if small is not None:
-            rec.log(f"{ent}/image", rr.EncodedImage(contents=_jpeg(small), media_type="image/jpeg"), static=static)
+        small = _resize_longest(thumb[0], THUMB_PX)[0] if thumb is not None else None
+        log_camera(rec, ent, P, np.asarray(cam.calibration_matrix(), np.float64), (cam.width, cam.height),
+                   static=static, color=color, image_bgr=small)
 
     def _log_reconstruction(self, rec: Any, model: Any) -> None:
         import rerun as rr
