@@ -39,6 +39,7 @@ import dataclasses
 import os
 import shutil
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -333,14 +334,17 @@ class RerunLogger:
         return self._thumbs[name]
 
     # hooks --------------------------------------------------------------------------------------
-    def on_pair(self, i: int, name0: str, name1: str, result: PairResult, cached: bool) -> None:
-        import time
-
+    def _timed(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run one logging call, adding its wall time to `seconds` (the overhead measurement)."""
         t0 = time.perf_counter()
         try:
-            self._log_pair(i, name0, name1, result, cached)
+            fn(*args)
         finally:
             self.seconds += time.perf_counter() - t0
+
+    def on_pair(self, i: int, name0: str, name1: str, result: PairResult, cached: bool) -> None:
+        """`run_scene`'s `on_pair` hook: the pair's diagnostics (see module doc)."""
+        self._timed(self._log_pair, i, name0, name1, result, cached)
 
     def _log_pair(self, i: int, name0: str, name1: str, r: PairResult, cached: bool) -> None:
         import rerun as rr
@@ -376,13 +380,7 @@ class RerunLogger:
 
     def on_sfm_step(self, step: Any, live: Any) -> None:
         """`run_scene`'s `on_sfm_step` hook: one frame of the growth replay (see module doc)."""
-        import time
-
-        t0 = time.perf_counter()
-        try:
-            self._log_growth_step(step, live)
-        finally:
-            self.seconds += time.perf_counter() - t0
+        self._timed(self._log_growth_step, step, live)
 
     def _log_growth_step(self, step: Any, live: Any) -> None:
         import rerun as rr
@@ -411,13 +409,8 @@ class RerunLogger:
         rec.reset_time()
 
     def on_model(self, model: Any, report: Any) -> None:
-        import time
-
-        t0 = time.perf_counter()
-        try:
-            self._log_model(model, report)
-        finally:
-            self.seconds += time.perf_counter() - t0
+        """`run_scene`'s `on_model` hook: verdicts, plots, the final model, summary, blueprint."""
+        self._timed(self._log_model, model, report)
 
     def _log_model(self, model: Any, report: Any) -> None:
         import rerun as rr
