@@ -25,7 +25,12 @@ def test_difficulty_sweep_rows_table_plot_and_reuse(tmp_path, capsys):
     assert rows["ours"]["verified_pairs"] >= 3 and rows["ours"]["inliers_per_pair"] > 30
     text = capsys.readouterr()
     assert "Difficulty curve" in text.out and "53.3" in text.out
-    assert (out / "difficulty.png").stat().st_size > 10_000  # matplotlib (the bench extra) drew it
+    try:
+        import matplotlib  # noqa: F401  (the bench extra, installed by `make test`)
+    except ImportError:
+        assert "plot: skipped" in text.out and not (out / "difficulty.png").exists()
+    else:
+        assert (out / "difficulty.png").stat().st_size > 10_000
 
     mtime = (out / "runs" / "facade-4x80" / "compare.json").stat().st_mtime_ns
     assert main(args) == 0
