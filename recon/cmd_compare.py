@@ -59,7 +59,12 @@ def register(app: typer.Typer) -> None:
         console.print(f"JSON: {Path(res['out']) / 'compare.json'}")
         if sink.enabled:
             gt, _, _ = load_gt(Path(res["scene"]))
-            saved = log_comparison(sink, res, gt)
+            try:
+                saved = log_comparison(sink, res, gt)
+            except Exception as e:  # compare.json and both models are written: report, do not crash
+                print(f"recon: warning: the Rerun recording failed ({type(e).__name__}: {e}); "
+                      f"the comparison is complete in {Path(res['out']) / 'compare.json'}", file=sys.stderr)
+                saved = None
             if saved is not None:
                 print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "
                       f"open it with: recon view {saved}", file=sys.stderr)

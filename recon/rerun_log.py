@@ -280,6 +280,7 @@ class RerunLogger:
         self._pairs: list[tuple[int, str, str]] = []
         self._growth_model: int | None = None  # model index of the last growth step logged
         self.seconds = 0.0  # wall-clock spent logging (overhead measurement)
+        self.error: str | None = None  # the first logging failure (logging stops after it)
 
     # sink ---------------------------------------------------------------------------------------
     def open_sink(self):
@@ -335,10 +336,20 @@ class RerunLogger:
 
     # hooks --------------------------------------------------------------------------------------
     def _timed(self, fn: Callable[..., None], *args: Any) -> None:
-        """Run one logging call, adding its wall time to `seconds` (the overhead measurement)."""
+        """Run one logging call, adding its wall time to `seconds` (the overhead measurement).
+
+        A logging failure (a viewer closed under `connect`, a full disk) must not cost the
+        reconstruction: the first one is reported once on stderr, kept in `error`, and logging
+        stops; the run goes on.
+        """
+        if self.error is not None:
+            return
         t0 = time.perf_counter()
         try:
             fn(*args)
+        except Exception as e:
+            self.error = f"{type(e).__name__}: {e}"
+            print(f"recon: warning: Rerun logging stopped ({self.error}); the run goes on", file=sys.stderr)
         finally:
             self.seconds += time.perf_counter() - t0
 

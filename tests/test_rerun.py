@@ -160,3 +160,17 @@ def test_sink_parsing_and_view_errors(tmp_path, monkeypatch, capsys):
     assert main(["view", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "Rerun viewer" in err and len(err.splitlines()) == 1
+
+
+def test_a_failing_sink_never_costs_the_reconstruction(scene, tmp_path, capsys):
+    """The recording cannot be written (its folder is a file): one warning, logging stops, and
+    the run still ends with its model and report."""
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("x")
+    out = tmp_path / "out"
+    assert main(["run", str(scene), "--out", str(out), "--no-progress", "--rerun", f"save:{blocker}/rec.rrd"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("Rerun logging stopped") == 1
+    report = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    assert report["status"] == "ok" and report["registered_images"] == report["num_images"]
+    assert (out / "sparse" / "0").is_dir()
