@@ -1,9 +1,12 @@
 """Incremental SfM with pycolmap, tuned for few, wide-baseline views; model and point cloud output.
 
-pycolmap 4 API used here (checked against 4.2.1): `pycolmap.incremental_mapping(database_path,
-image_path, output_path, options: IncrementalPipelineOptions, ..., next_image_callback=...)`
-returns `{model index: Reconstruction}` and also writes each model to `output_path/<index>/`;
-the mapper's own options live in `IncrementalPipelineOptions.mapper` (IncrementalMapperOptions:
+pycolmap 4 API used here (checked against 4.2.1): `pycolmap.IncrementalPipeline(options,
+database, reconstruction_manager)` with `add_callback(IncrementalPipelineCallback.
+INITIAL_IMAGE_PAIR_REG_CALLBACK / NEXT_IMAGE_REG_CALLBACK, fn)` and `run()` fills the
+`ReconstructionManager` (`size()`, `get(i)`) with every model, including the one being built
+when a callback fires (so a callback can read the live model: `pycolmap.incremental_mapping`
+does the same but its callbacks get no arguments and it writes every model to disk);
+`options.image_path` is where point colours are read from. The mapper's own options live in `IncrementalPipelineOptions.mapper` (IncrementalMapperOptions:
 `init_min_tri_angle`, `abs_pose_min_num_inliers`, ...) and the triangulator's in
 `.triangulation` (IncrementalTriangulatorOptions). `Reconstruction.write(dir)` writes the
 binary model; `compute_mean_track_length()`, `compute_mean_reprojection_error()`,
@@ -143,8 +146,8 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
     after every further registration, `on_step(step, reconstruction)` receives the live model
     (read it inside the hook, it changes afterwards) so callers can show the reconstruction
     growing. An exception from the hook is recorded in `SfmResult.hook_error` and the hook is
-    not called again: mapping always finishes. Nothing is written to disk here (see
-    `write_model_atomic`).
+    not called again: mapping always finishes. Sets `options.image_path` (point colours).
+    Nothing is written to disk here (see `write_model_atomic`).
     """
     opts = options
     opts.image_path = str(image_dir)  # for extract_colors
