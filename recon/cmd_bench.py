@@ -126,7 +126,7 @@ def difficulty_cmd(
                                                                            "preset's 800x600).")] = None,
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Also copy the rows to this JSON file.")] = None,
     seed: Annotated[int, typer.Option("--seed")] = 0,
-    rerun: Annotated[bool, typer.Option("--rerun", help="Recompute scenes whose compare.json already exists.")]
+    recompute: Annotated[bool, typer.Option("--recompute", help="Run scenes again whose compare.json already exists.")]
         = False,
 ) -> None:
     """Difficulty curve: azimuth step between views vs registered images and rotation error (stock vs ours)."""
@@ -148,7 +148,7 @@ def difficulty_cmd(
     presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
     err = Console(stderr=True, highlight=False)
     data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]
-                          rerun=rerun, log=lambda m: err.print(f"recon: {m}", markup=False))
+                          recompute=recompute, log=lambda m: err.print(f"recon: {m}", markup=False))
     Console(width=None if sys.stdout.isatty() else 160).print(difficulty_table(data))
     js = Path(out) / "difficulty.json"
     if json_out is not None:

@@ -13,7 +13,7 @@ it did register (and `registered` says how many), AUC counts unregistered pairs 
 Outputs (under OUT): `scenes/<preset>/` (rendered once, reused when the same seed and size are
 already there), `runs/<preset>/` (each `compare` output), `difficulty.json` (rows + config,
 rewritten atomically after every scene, so an interrupted sweep keeps its finished scenes and
-the next run re-uses their `compare.json` unless --rerun), and, when matplotlib is installed
+the next run re-uses their `compare.json` unless --recompute), and, when matplotlib is installed
 (the `bench` extra), `difficulty.png`: registered fraction and rotation error against the step.
 """
 
@@ -75,7 +75,7 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
 
 def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_azimuth_deg: float = DEFAULT_MAX_AZIMUTH,
                    presets: Sequence[str] = DEFAULT_PRESETS, seed: int = 0, image_size: tuple[int, int] | None = None,
-                   max_size: int = 1600, rerun: bool = False, log: Log = lambda _m: None) -> dict[str, Any]:
+                   max_size: int = 1600, recompute: bool = False, log: Log = lambda _m: None) -> dict[str, Any]:
     """Render and compare every sweep scene; returns {"config", "rows"} (also OUT/difficulty.json)."""
     from .cli import UserError
     from scenes.presets import get_preset
@@ -97,7 +97,7 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
         run_dir = out / "runs" / preset
         res = None
         cj = run_dir / "compare.json"
-        if cj.is_file() and not rerun and not rendered:
+        if cj.is_file() and not recompute and not rendered:
             try:
                 res = json.loads(cj.read_text(encoding="utf-8"))
                 if (res.get("config", {}).get("stock_presets") != list(presets)
@@ -106,7 +106,7 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
             except (OSError, ValueError, KeyError):
                 res = None
             if res is not None:
-                log(f"{preset}: reusing {cj} (--rerun to recompute)")
+                log(f"{preset}: reusing {cj} (--recompute to run it again)")
         if res is None:
             res = compare_scene(scene, run_dir, presets=presets, max_size=max_size, seed=seed, strict=False,
                                 log=log, on_warning=lambda m, p=preset: log(f"{p}: warning: {m}"))
