@@ -6,8 +6,10 @@
 * `num_images` (usable images), `registered_images`, `num_points3D`, `mean_track_length` and
   `mean_reprojection_error` (px) of the kept (largest) model, `num_models`, `model_sizes`;
 * `tracks`: track lengths of the *verified* match graph before SfM, with keypoint merging
-  (`merged`) and without (`unmerged`: every pair keeps its own keypoints, so every track has
-  length exactly 2). `mean_track_length` above is the model's (after SfM with merging). A
+  (`merged`: `num_tracks`, `mean_length`, `max_length`, `inconsistent` tracks holding two
+  keypoints of one image, `inconsistent_share` of the observations, and
+  `consistent_mean_length`, the figure the console shows; see `recon.tracks.track_stats`) and
+  without (`unmerged`: every pair keeps its own keypoints, so every track has length exactly 2). `mean_track_length` above is the model's (after SfM with merging). A
   reconstruction without merging can be measured with `--merge-px 0` (see `recon.tracks`);
 * `seconds_total`, `peak_mb` (peak resident memory of the process), `stages` (seconds per stage);
 * `pairs`: one row per pair in pair order: `image0`, `image1`, `reference` (name of the image
@@ -119,8 +121,11 @@ def summary_table(report: RunReport):
     t.add_row("mean track length (model)", f"{report.mean_track_length:.2f}")
     merged = report.tracks.get("merged", {})
     if merged:
-        t.add_row("mean track length (graph, merged / unmerged)",
-                  f"{merged.get('mean_length', 0.0):.2f} / {report.tracks.get('unmerged', {}).get('mean_length', 0.0):.2f}")
+        t.add_row("mean track length (graph, consistent tracks, merged / unmerged)",
+                  f"{merged.get('consistent_mean_length', merged.get('mean_length', 0.0)):.2f} / "
+                  f"{report.tracks.get('unmerged', {}).get('mean_length', 0.0):.2f}")
+        if merged.get("inconsistent_share", 0.0) > 0:
+            t.add_row("  observations in inconsistent graph tracks", f"{100 * merged['inconsistent_share']:.0f} %")
     err = report.mean_reprojection_error
     t.add_row("mean reprojection error (px)", "-" if err is None else f"{err:.3f}")
     t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")

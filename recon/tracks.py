@@ -241,11 +241,16 @@ def connected_components(n: int, edges: NDArray[np.int64]) -> NDArray[np.int64]:
 
 def track_stats(num_keypoints: Mapping[str, int], pairs: Sequence[tuple[str, str]],
                 matches: Sequence[NDArray]) -> dict:
-    """Tracks of a match graph: {num_tracks, mean_length, max_length, inconsistent}.
+    """Tracks of a match graph: {num_tracks, mean_length, max_length, inconsistent,
+    consistent_mean_length, inconsistent_share}.
 
     A track is a connected component of (image, keypoint) nodes joined by matches; its length is
     its number of nodes. `inconsistent` counts tracks holding two keypoints of one image (COLMAP
-    splits or trims those while triangulating).
+    splits or trims those while triangulating), `inconsistent_share` is the fraction of nodes
+    in them, and `consistent_mean_length` the mean length of the other tracks. With dense
+    matches on repeated texture a few wrong matches can chain most nodes into one giant
+    inconsistent component (the rendered 30-image facade: one of 271510 nodes), which makes
+    `mean_length` meaningless; `consistent_mean_length` stays the number to read.
     """
     names = list(num_keypoints)
     offset, image_of = {}, []
@@ -257,7 +262,8 @@ def track_stats(num_keypoints: Mapping[str, int], pairs: Sequence[tuple[str, str
     edges = [np.stack([np.asarray(m[:, 0], np.int64) + offset[a], np.asarray(m[:, 1], np.int64) + offset[b]], 1)
              for (a, b), m in zip(pairs, matches) if len(m)]
     if not edges:
-        return dict(num_tracks=0, mean_length=0.0, max_length=0, inconsistent=0)
+        return dict(num_tracks=0, mean_length=0.0, max_length=0, inconsistent=0, consistent_mean_length=0.0,
+                    inconsistent_share=0.0)
     e = np.concatenate(edges)
     lab = connected_components(total, e)
     in_graph = np.zeros(total, bool)
@@ -268,6 +274,9 @@ def track_stats(num_keypoints: Mapping[str, int], pairs: Sequence[tuple[str, str
     # tracks with two nodes of one image: distinct (component, image) < component size
     ci = np.unique(np.stack([comp, img], 1), axis=0)
     _, per_comp_images = np.unique(ci[:, 0], return_counts=True)
-    inconsistent = int(np.count_nonzero(per_comp_images < sizes))
+    bad = per_comp_images < sizes
+    good_sizes = sizes[~bad]
     return dict(num_tracks=int(len(sizes)), mean_length=float(sizes.mean()), max_length=int(sizes.max()),
-                inconsistent=inconsistent)
+                inconsistent=int(np.count_nonzero(bad)),
+                consistent_mean_length=float(good_sizes.mean()) if len(good_sizes) else 0.0,
+                inconsistent_share=float(sizes[bad].sum() / sizes.sum()))

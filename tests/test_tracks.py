@@ -38,7 +38,8 @@ def test_merging_gives_one_keypoint_per_point_and_tracks_of_three():
         d = np.linalg.norm(k[:, None] - true[name][None], axis=2).min(1)
         assert d.max() < 1.0
     st = track_stats(_nk(mt), mt.pairs, mt.matches)
-    assert st == {"num_tracks": 60, "mean_length": 3.0, "max_length": 3, "inconsistent": 0}
+    assert st == {"num_tracks": 60, "mean_length": 3.0, "max_length": 3, "inconsistent": 0,
+                  "consistent_mean_length": 3.0, "inconsistent_share": 0.0}
 
 
 def test_no_merging_keeps_pairs_apart_and_tracks_of_two():
@@ -136,4 +137,21 @@ def test_track_stats_counts_inconsistent_tracks():
     m_bc = np.array([[0, 0]], np.uint32)
     m_ca = np.array([[0, 1]], np.uint32)
     st = track_stats({"A": 2, "B": 1, "C": 1}, [("A", "B"), ("B", "C"), ("C", "A")], [m_ab, m_bc, m_ca])
-    assert st == {"num_tracks": 1, "mean_length": 4.0, "max_length": 4, "inconsistent": 1}
+    assert st == {"num_tracks": 1, "mean_length": 4.0, "max_length": 4, "inconsistent": 1,
+                  "consistent_mean_length": 0.0, "inconsistent_share": 1.0}
+
+
+def test_track_stats_separate_a_giant_inconsistent_component():
+    """Ten clean 3-view tracks plus one chain that links two keypoints of A: the mean over all
+    tracks is pulled up, the consistent mean is not."""
+    n = 10
+    clean = np.stack([np.arange(n), np.arange(n)], 1).astype(np.uint32)
+    chain_ab = np.array([[n, n]], np.uint32)  # A10-B10
+    chain_bc = np.array([[n, n]], np.uint32)  # B10-C10
+    chain_ca = np.array([[n, n + 1]], np.uint32)  # C10-A11: A twice
+    st = track_stats({"A": n + 2, "B": n + 1, "C": n + 1}, [("A", "B"), ("B", "C"), ("C", "A")],
+                     [np.vstack([clean, chain_ab]), np.vstack([clean, chain_bc]), np.vstack([clean, chain_ca])])
+    assert st["num_tracks"] == n + 1 and st["inconsistent"] == 1
+    assert st["consistent_mean_length"] == 3.0
+    assert st["inconsistent_share"] == 4 / (3 * n + 4)
+    assert st["mean_length"] == (3 * n + 4) / (n + 1)
