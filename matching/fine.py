@@ -197,26 +197,20 @@ def guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDAr
     return np.stack([qi[q], t], axis=1).astype(np.int32), best
 
 
-def epipolar_distances(F_t_from_q: NDArray[np.float64], kpts_q: NDArray, kpts_t: NDArray) -> NDArray[np.float32]:
-    """(N, M) distance in px of each target keypoint to each query keypoint's epipolar line.
-
-    `F_t_from_q` maps a query point x to its line l = F x in the target (x_tᵀ F x_q = 0).
-    """
-    q = np.c_[np.asarray(kpts_q, np.float64), np.ones(len(kpts_q))]
-    lines = q @ np.asarray(F_t_from_q, np.float64).T
+def _epipolar_lines(F_t_from_q: NDArray[np.float64], pts_q: NDArray) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """((N, 3) lines F x of the query points, normalised so that a·x + b·y + c is a distance in
+    target pixels; (N,) mask of the points whose line is defined). x_tᵀ F x_q = 0."""
+    lines = np.c_[np.asarray(pts_q, np.float64).reshape(-1, 2), np.ones(len(pts_q))] @ np.asarray(F_t_from_q, np.float64).T
     norm = np.hypot(lines[:, 0], lines[:, 1])
-    lines /= np.where(norm > 0, norm, np.inf)[:, None]
-    t = np.c_[np.asarray(kpts_t, np.float64), np.ones(len(kpts_t))]
-    return np.abs(lines.astype(np.float32) @ t.astype(np.float32).T)
+    valid = norm > 0
+    return lines / np.where(valid, norm, np.inf)[:, None], valid
 
 
 def epipolar_pair_distance(F_t_from_q: NDArray[np.float64], pts_q: NDArray, pts_t: NDArray) -> NDArray[np.float64]:
-    """(K,) distance in px of each pts_t[k] to the epipolar line of pts_q[k] (see `epipolar_distances`)."""
-    q = np.c_[np.asarray(pts_q, np.float64), np.ones(len(pts_q))]
-    t = np.c_[np.asarray(pts_t, np.float64), np.ones(len(pts_t))]
-    lines = q @ np.asarray(F_t_from_q, np.float64).T
-    norm = np.hypot(lines[:, 0], lines[:, 1])
-    return np.abs((lines * t).sum(1)) / np.where(norm > 0, norm, np.inf)
+    """(K,) distance in px of each pts_t[k] to the epipolar line of pts_q[k] in the target."""
+    lines, _ = _epipolar_lines(F_t_from_q, pts_q)
+    t = np.asarray(pts_t, np.float64).reshape(-1, 2)
+    return np.abs(lines[:, 0] * t[:, 0] + lines[:, 1] * t[:, 1] + lines[:, 2])
 
 
 def _runs(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -231,8 +225,8 @@ def _runs(lo: NDArray[np.int64], hi: NDArray[np.int64]) -> tuple[NDArray[np.int6
 def epipolar_band_candidates(F_t_from_q: NDArray[np.float64], kpts_q: NDArray, kpts_t: NDArray,
                              radius_px: float, near_px: float = 64.0) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(rows, cols): every (query, target) pair whose target lies within `radius_px` of the
-    query's epipolar line, the same set as thresholding `epipolar_distances` but without the
-    (N, M) matrix.
+    query's epipolar line: the same set as thresholding every (query, target) distance, without
+    the (N, M) matrix.
 
     All lines F x pass through the target epipole e (Fᵀ e = 0). A target at distance rho from
     e, in direction alpha (mod 180°), lies within r of a line through e of direction theta iff
@@ -246,10 +240,8 @@ def epipolar_band_candidates(F_t_from_q: NDArray[np.float64], kpts_q: NDArray, k
     kq = np.asarray(kpts_q, np.float64).reshape(-1, 2)
     kt = np.asarray(kpts_t, np.float64).reshape(-1, 2)
     F = np.asarray(F_t_from_q, np.float64)
-    lines = np.c_[kq, np.ones(len(kq))] @ F.T
-    norm = np.hypot(lines[:, 0], lines[:, 1])
-    valid = norm > 0
-    lines /= np.where(valid, norm, 1.0)[:, None]
+    lines, valid = _epipolar_lines(F, kq)
+    lines[~valid] = 0.0  # undefined lines (query at the epipole) match nothing, see `valid` below
     e = np.linalg.svd(F.T)[2][-1]
     found_r: list[NDArray[np.int64]] = []
     found_c: list[NDArray[np.int64]] = []

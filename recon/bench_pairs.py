@@ -71,28 +71,26 @@ def _numbered(folder: Path, pattern: str) -> list[tuple[int, Path]]:
     return sorted(out)
 
 
-def _oxford(folder: Path) -> list[GtPair]:
-    img1 = _image(folder, "img1")
+def _one_to_k(folder: Path, first: str, h_pattern: str, image_k: str, kind: str) -> list[GtPair]:
+    """Pairs (image `first`, image k) with homography files matching `h_pattern` (k as its group);
+    `image_k` names image k (`{k}` is replaced)."""
+    img1 = _image(folder, first)
     if img1 is None:
         return []
     out = []
-    for k, hp in _numbered(folder, r"H1to(\d+)p"):
-        imgk = _image(folder, f"img{k}")
+    for k, hp in _numbered(folder, h_pattern):
+        imgk = _image(folder, image_k.format(k=k))
         if imgk is not None:
-            out.append(GtPair(f"{folder.name} 1-{k}", img1, imgk, read_homography(hp), "oxford"))
+            out.append(GtPair(f"{folder.name} 1-{k}", img1, imgk, read_homography(hp), kind))
     return out
+
+
+def _oxford(folder: Path) -> list[GtPair]:
+    return _one_to_k(folder, "img1", r"H1to(\d+)p", "img{k}", "oxford")
 
 
 def _hpatches(folder: Path) -> list[GtPair]:
-    img1 = _image(folder, "1")
-    if img1 is None:
-        return []
-    out = []
-    for k, hp in _numbered(folder, r"H_1_(\d+)"):
-        imgk = _image(folder, str(k))
-        if imgk is not None:
-            out.append(GtPair(f"{folder.name} 1-{k}", img1, imgk, read_homography(hp), "hpatches"))
-    return out
+    return _one_to_k(folder, "1", r"H_1_(\d+)", "{k}", "hpatches")
 
 
 def _evd(folder: Path) -> list[GtPair]:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .compare import OURS_KEY, load_model
+from .compare import OURS_KEY, load_model, points_xyz
 from .evaluate import center, poses_from_estimate, umeyama
 from .rerun_log import Sink, _esc, log_camera
 
@@ -98,8 +98,7 @@ def _read(method: str, out: str | Path) -> _Model | None:
     for iid in rec.reg_image_ids():
         im = rec.image(iid)
         intr[im.name] = (np.asarray(im.camera.calibration_matrix(), np.float64), (im.camera.width, im.camera.height))
-    xyz = np.array([p.xyz for p in rec.points3D.values()], np.float64).reshape(-1, 3)
-    return _Model(method, poses, intr, xyz)
+    return _Model(method, poses, intr, points_xyz(rec))
 
 
 def summary_markdown(res: dict[str, Any], notes: dict[str, str], frame: str) -> str:

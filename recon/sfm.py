@@ -153,19 +153,16 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
     opts.image_path = str(image_dir)  # for extract_colors
     manager = pycolmap.ReconstructionManager()
     growth: list[dict] = []
-    order: dict[int, list[str]] = {}
-    seen: dict[int, set[int]] = {}
+    order: dict[int, list[str]] = {}  # model index -> image names in registration order
     hook_errors: list[str] = []
 
     def hook() -> None:
         idx = manager.size() - 1
         rec = manager.get(idx)
         reg = list(rec.reg_image_ids())
-        known = seen.setdefault(idx, set())
-        new = [i for i in reg if i not in known]
-        known.update(new)
         names = order.setdefault(idx, [])
-        names += [rec.image(i).name for i in sorted(new)]
+        known = set(names)
+        names += [rec.image(i).name for i in sorted(reg) if rec.image(i).name not in known]
         step = GrowthStep(step=len(growth), model=idx, image=names[-1] if names else "", images=tuple(names),
                           registered_images=len(reg), num_points3D=int(rec.num_points3D()))
         growth.append(step.to_dict())
