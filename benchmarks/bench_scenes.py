@@ -6,17 +6,17 @@
 
 SCENES_ROOT (default: ../shared/data/scenes next to the repository, or $RECON_SHARED_DATA/scenes)
 holds one folder per scene (photos in `images/` or at the top level, optional ground truth in
-`gt/`, see `recon.gt`). For each scene, in this one process, `recon.compare.compare_scene` (the logic behind
+`gt/`, see `recon.eval.gt`). For each scene, in this one process, `recon.eval.compare.compare_scene` (the logic behind
 `recon compare` and `recon bench scenes`; this script is a thin wrapper kept for its command line):
 
-1. `recon.stock.run_stock` for each stock preset into `OUT/<scene>/stock-<preset>`;
-2. `recon.pipeline.run_scene` (method extra-affine) into `OUT/<scene>/extra_affine`;
-3. each model is evaluated against the GT when the scene has one (`recon.evaluate`), matched by
+1. `recon.eval.stock.run_stock` for each stock preset into `OUT/<scene>/stock-<preset>`;
+2. `recon.core.pipeline.run_scene` (method extra-affine) into `OUT/<scene>/extra_affine`;
+3. each model is evaluated against the GT when the scene has one (`recon.eval.evaluate`), matched by
    image name; a malformed GT is reported and the scene is still run without it;
-4. the two point clouds are compared after a similarity alignment (`recon.compare.compare_clouds`);
+4. the two point clouds are compared after a similarity alignment (`recon.eval.compare.compare_clouds`);
    `OUT/<scene>/compare.json` holds the scene's comparison.
 
-Peak memory: every run is wrapped in `recon.bench_pairs.PeakRss` (RSS sampled from /proc; the
+Peak memory: every run is wrapped in `matching.memory.PeakRss` (RSS sampled from /proc; the
 process-lifetime `ru_maxrss` that `recon run` reports would carry the first run's peak into the
 later ones), and `peak MB` is the highest RSS seen during that run.
 
@@ -36,9 +36,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a plain script from anywhere
     sys.path.insert(0, str(REPO))
 
-from recon.cli import UserError  # noqa: E402
-from recon.compare import OURS, discover_scenes, run_scenes, scenes_table  # noqa: E402,F401
-from recon.stock import PRESETS  # noqa: E402
+from recon.errors import UserError  # noqa: E402
+from recon.eval.compare import OURS, discover_scenes, run_scenes, scenes_table  # noqa: E402,F401
+from recon.eval.stock import PRESETS  # noqa: E402
 
 
 def default_root() -> Path:

@@ -13,9 +13,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from recon.compare import compare_scene, load_gt
-from recon.compare_rerun import COMPARE_RECORDING, log_comparison
-from recon.rerun_log import Sink
+from recon.eval.compare import compare_scene, load_gt
+from recon.viz.compare_rerun import COMPARE_RECORDING, log_comparison
+from recon.viz.rerun_log import Sink
 from scenes.render import render_scene
 
 

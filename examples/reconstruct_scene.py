@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from recon.pipeline import RunConfig, run_scene
+from recon.core.pipeline import RunConfig, run_scene
 from scenes.render import render_scene
 
 

@@ -1,4 +1,7 @@
-"""Process-level memory behaviour: give large freed buffers back to the OS at once.
+"""Process memory: give large freed buffers back to the OS at once, and measure peaks.
+
+The one memory helper of the project: `return_large_buffers_to_os` (below), `PeakRss` (peak
+resident growth during a block, sampled) and `peak_rss_mb` (the process's peak so far).
 
 glibc serves large allocations (OpenCV's image pyramids, SIFT's scale space: ~120 MB for an
 800 px image) with mmap only above a threshold that *grows* to the largest block freed so far;
@@ -14,6 +17,11 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import gc
+import os
+import sys
+import threading
+from pathlib import Path
 
 M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter number
 _done = False
@@ -30,3 +38,93 @@ def return_large_buffers_to_os(threshold_bytes: int = 4 << 20) -> bool:
     except (OSError, AttributeError):
         _done = False
     return _done
+
+
+# peak memory -----------------------------------------------------------------------------------------
+_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+_STATM = Path("/proc/self/statm")
+
+
+def _rss_bytes() -> int | None:
+    try:
+        return int(_STATM.read_text().split()[1]) * _PAGE
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _release_free_memory() -> None:
+    """Give freed heap back to the OS so the next measurement starts from a clean baseline."""
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+class PeakRss:
+    """Peak resident-set growth during a `with` block, sampled from /proc/self/statm.
+
+    Why RSS and not tracemalloc: tracemalloc sees only Python's allocator, not OpenCV's C++
+    buffers (image pyramids, simulated views, descriptors), which are most of the memory here.
+    A background thread samples the process RSS every `interval` s (OpenCV releases the GIL
+    in its calls, so sampling continues while they run); `peak_mb` is the highest sample minus
+    the RSS just before the block, in MB (2^20 bytes). Freed heap is trimmed (`malloc_trim`)
+    before the block so memory left over by an earlier method does not hide the growth.
+    Limits: spikes shorter than the interval can be missed, and the process baseline
+    (interpreter, numpy, OpenCV, the two loaded images: `before_mb`) is excluded; `total_mb`
+    is the absolute peak. Without /proc (not Linux) both are None.
+    """
+
+    def __init__(self, interval: float = 0.005):
+        self.interval = interval
+        self.before: int | None = None
+        self.peak: int | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            r = _rss_bytes()
+            if r is not None and (self.peak is None or r > self.peak):
+                self.peak = r
+
+    def __enter__(self) -> "PeakRss":
+        _release_free_memory()
+        self.before = _rss_bytes()
+        self.peak = self.before
+        if self.before is not None:
+            self._thread = threading.Thread(target=self._run, name="peak-rss", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        r = _rss_bytes()
+        if r is not None and self.peak is not None and r > self.peak:
+            self.peak = r
+
+    @property
+    def peak_mb(self) -> float | None:
+        if self.before is None or self.peak is None:
+            return None
+        return max(0, self.peak - self.before) / 2**20
+
+    @property
+    def total_mb(self) -> float | None:
+        return None if self.peak is None else self.peak / 2**20
+
+    @property
+    def before_mb(self) -> float | None:
+        return None if self.before is None else self.before / 2**20
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MB (0.0 where the OS does not say)."""
+    try:
+        import resource
+    except ImportError:  # Windows
+        return 0.0
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KB on Linux, bytes on macOS
+    return float(r) / (1024.0 * 1024.0) if sys.platform == "darwin" else float(r) / 1024.0

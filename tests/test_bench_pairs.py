@@ -10,7 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.bench_pairs import PeakRss, discover_pairs, ratio_line, summarize, write_json
+from matching.memory import PeakRss
+from recon.eval.bench_pairs import discover_pairs, ratio_line, summarize, write_json
 
 DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 needs_data = pytest.mark.skipif(not (DATA / "oxford" / "graf").is_dir(), reason=f"shared test data not found at {DATA}")

@@ -1,4 +1,4 @@
-"""`recon compare` / `recon bench scenes` (recon.compare): stock COLMAP vs the extra-affine pipeline."""
+"""`recon compare` / `recon bench scenes` (recon.eval.compare): stock COLMAP vs the extra-affine pipeline."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.compare import GT_KEYS, compare_clouds, compare_scene, run_scenes
+from recon.eval.compare import GT_KEYS, compare_clouds, compare_scene, run_scenes
 
 SIZE = (640, 480)  # facade-extreme at this size: stock default registers 0/4, ours 4/4
 
@@ -48,7 +48,7 @@ def test_compare_stock_fails_ours_succeeds_via_cli(facade, tmp_path, capsys):
     assert "Points3D:positions" in cols["/world/extra_affine/points"]
     assert not any(k.startswith("/world/stock-default/") for k in cols)  # stock found no model
     assert "TextDocument:text" in cols["/summary"]
-    from recon.cmd_view import resolve_recording
+    from recon.cli.view import resolve_recording
 
     assert resolve_recording(out) == out / "compare.rrd"  # `recon view OUT` finds it
 
@@ -83,7 +83,7 @@ def test_compare_recording_aligns_every_model_to_the_ground_truth(facade, tmp_pa
     """--stock-preset high (which registers this scene) and ours, logged in the GT frame: each
     model's logged camera centres land on the GT centres."""
     from recon.cli import main
-    from recon.gt import find_gt
+    from recon.eval.gt import find_gt
 
     out = tmp_path / "cmp-high"
     rrd = tmp_path / "c.rrd"
@@ -178,7 +178,7 @@ def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
 
 
 def test_run_scenes_unknown_scene(facade):
-    from recon.cli import UserError
+    from recon.errors import UserError
 
     with pytest.raises(UserError, match="no scene"):
         run_scenes(facade.parent, facade.parent / "o", ["missing"])

@@ -1,4 +1,4 @@
-"""COLMAP database round trip (recon.database): cameras, keypoints (+0.5), matches, atomic build."""
+"""COLMAP database round trip (recon.core.database): cameras, keypoints (+0.5), matches, atomic build."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from recon.database import (build_database, import_scene_images, read_keypoints_opencv, read_verified,
+from recon.core.database import (build_database, import_scene_images, read_keypoints_opencv, read_verified,
                             two_view_options, write_keypoints_and_matches)
 
 

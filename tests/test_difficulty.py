@@ -6,7 +6,7 @@ import importlib.util
 import json
 
 from recon.cli import main
-from recon.difficulty import step_deg
+from recon.eval.difficulty import step_deg
 
 
 def test_difficulty_sweep_rows_table_plot_and_reuse(tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""Ground-truth readers (`recon.gt`) and the model evaluation (`recon.evaluate`), on small
+"""Ground-truth readers (`recon.eval.gt`) and the model evaluation (`recon.eval.evaluate`), on small
 synthetic fixtures written in tmp_path (no pycolmap, no shared data)."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from matching.errors import InputError
-from recon.evaluate import evaluate_model, pose_auc, umeyama
-from recon.gt import GtCamera, find_gt, quat_to_rot, read_colmap_text, read_strecha, read_strecha_camera
+from recon.eval.evaluate import evaluate_model, pose_auc, umeyama
+from recon.eval.gt import GtCamera, find_gt, quat_to_rot, read_colmap_text, read_strecha, read_strecha_camera
 
 
 # helpers ----------------------------------------------------------------------------------------

@@ -88,8 +88,8 @@ def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
     ground-truth epipolar geometry, at no loss of the consistent fraction."""
     from matching.io import load_gray
     from matching.store import FeatureStore
-    from recon.gt import find_gt
-    from recon.pipeline import make_matcher
+    from recon.eval.gt import find_gt
+    from recon.core.pipeline import make_matcher
     from scenes.render import render_scene
 
     scene = tmp_path / "fw"
@@ -120,7 +120,7 @@ def test_guided_round_skips_pairs_without_trustworthy_geometry(shared_data):
     its band collected chance matches that wrecked the model)."""
     from matching.io import load_gray
     from matching.store import FeatureStore
-    from recon.pipeline import make_matcher
+    from recon.core.pipeline import make_matcher
 
     d = shared_data / "scenes" / "sacre_coeur" / "images"
     good = ("02928139_3448003521.jpg", "44120379_8371960244.jpg")

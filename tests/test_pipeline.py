@@ -21,7 +21,7 @@ import pycolmap
 import pytest
 
 from recon.cli import main
-from recon.pipeline import RunConfig, run_scene
+from recon.core.pipeline import RunConfig, run_scene
 from scenes.render import render_scene
 
 DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
@@ -109,8 +109,8 @@ def test_end_to_end_registers_every_image(first_run):
 
 def test_extra_affine_reconstructs_the_wide_corner_close_to_ground_truth(tmp_path):
     """The default method on 4 views 29 deg apart with viewing angles to ~80 deg."""
-    from recon.evaluate import evaluate_model
-    from recon.gt import find_gt
+    from recon.eval.evaluate import evaluate_model
+    from recon.eval.gt import find_gt
 
     scene = make_scene(tmp_path / "wide", preset="corner-wide")
     out = tmp_path / "out"
@@ -375,12 +375,12 @@ def test_cli_bad_options(tmp_path, capsys, args, text):
 
 
 def test_cli_ctrl_c_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
-    import recon.pipeline
+    import recon.core.pipeline
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(recon.pipeline, "run_scene", interrupted)
+    monkeypatch.setattr(recon.core.pipeline, "run_scene", interrupted)
     rc = main(["run", str(tmp_path), "--method", "sift", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 130 and "Traceback" not in err and "rerun the same command to resume" in err

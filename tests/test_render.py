@@ -10,7 +10,7 @@ import pytest
 
 from matching.errors import InputError
 from recon.cli import main
-from recon.gt import read_colmap_text
+from recon.eval.gt import read_colmap_text
 from scenes.presets import PRESETS, get_preset
 from scenes.render import H_img_from_tex, intrinsics, render_scene
 

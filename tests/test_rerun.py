@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("rerun")
 
 from recon.cli import main  # noqa: E402
-from recon.rerun_log import (camera_entity, coarse_grid, heatmap_image, pair_entity,  # noqa: E402
+from recon.viz.rerun_log import (camera_entity, coarse_grid, heatmap_image, pair_entity,  # noqa: E402
                              parse_sink)
 
 
@@ -156,7 +156,7 @@ def test_sink_parsing_and_view_errors(tmp_path, monkeypatch, capsys):
     assert main(["view", str(tmp_path)]) == 2
     assert "no recording.rrd" in capsys.readouterr().err
     (tmp_path / "recording.rrd").write_bytes(b"")
-    monkeypatch.setattr("recon.rerun_log.find_viewer", lambda: None)
+    monkeypatch.setattr("recon.viz.rerun_log.find_viewer", lambda: None)
     assert main(["view", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "Rerun viewer" in err and len(err.splitlines()) == 1

@@ -1,4 +1,4 @@
-"""Scene scanning (recon.scene) and pair lists (recon.pairs)."""
+"""Scene scanning (recon.core.scene) and pair lists (recon.core.pairs)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 
 from matching.errors import InputError
 from matching.io import resize_max
-from recon.pairs import make_pairs, parse_pairs_spec
-from recon.scene import find_image_dir, scan_scene, to_full_res
+from recon.core.pairs import make_pairs, parse_pairs_spec
+from recon.core.scene import find_image_dir, scan_scene, to_full_res
 
 
 def _img(seed: int, w: int = 120, h: int = 90) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""`recon.stock.run_stock`: COLMAP's own SIFT pipeline on a small real scene (4 photos of
+"""`recon.eval.stock.run_stock`: COLMAP's own SIFT pipeline on a small real scene (4 photos of
 fountain_P11 at 640 px, a few seconds), evaluated against the scene's Strecha ground truth."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from recon.evaluate import evaluate_model
-from recon.gt import find_gt
-from recon.stock import run_stock
+from recon.eval.evaluate import evaluate_model
+from recon.eval.gt import find_gt
+from recon.eval.stock import run_stock
 
 DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 FOUNTAIN = DATA / "scenes" / "fountain_P11"

@@ -1,10 +1,10 @@
-"""Keypoint merging into multi-view tracks (recon.tracks) on synthetic keypoints."""
+"""Keypoint merging into multi-view tracks (recon.core.tracks) on synthetic keypoints."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from recon.tracks import PairMatches, connected_components, merge_tracks, track_stats
+from recon.core.tracks import PairMatches, connected_components, merge_tracks, track_stats
 
 
 def _three_view_pairs(n=60, noise=0.3, seed=0):

@@ -281,7 +281,7 @@ def find_gt(scene_dir: str | Path, check_names: bool = True) -> dict[str, GtCame
     With `check_names`, GT naming an image that is not in the scene's image folder raises
     InputError (naming the GT file); GT may cover fewer images than the scene.
     """
-    from .scene import find_image_dir, list_candidates
+    from recon.core.scene import find_image_dir, list_candidates
 
     src = gt_source(scene_dir)
     if src is None:

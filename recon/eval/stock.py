@@ -3,24 +3,24 @@ for `recon run`: same images, same pair selection, same cameras, same incrementa
 
 `run_stock(scene_dir, out_dir, preset="default"|"high", pairs="exhaustive", max_size=1600,
 seed=0, camera_mode="auto")` returns a report dict with the keys of `recon run`'s report.json
-where they apply (see `recon.report.RunReport`) plus `method`, `preset`, `verified_pairs`,
+where they apply (see `recon.core.report.RunReport`) plus `method`, `preset`, `verified_pairs`,
 `inliers_per_pair_mean` / `_median`, `num_keypoints_mean` and the COLMAP options used, and writes
 `OUT/database.db`, `OUT/sparse/0` (when a model is found) and `OUT/report.json`.
 
 What is shared with `recon run` (so only the features and matches differ):
 
-* images: `recon.scene.scan_scene` (unreadable, tiny and duplicate photos skipped the same way);
-* cameras: `recon.database.import_scene_images` fills the database first (same camera model,
+* images: `recon.core.scene.scan_scene` (unreadable, tiny and duplicate photos skipped the same way);
+* cameras: `recon.core.database.import_scene_images` fills the database first (same camera model,
   same `--camera-mode auto` rule, same EXIF / 1.2 * max(w, h) focal prior);
   `pycolmap.extract_features` then finds the images already there and only adds keypoints and
   descriptors (no new cameras, rigs or frames);
-* pairs: `recon.pairs` (`exhaustive` -> `pycolmap.match_exhaustive`; `sequential:K` and pairs
+* pairs: `recon.core.pairs` (`exhaustive` -> `pycolmap.match_exhaustive`; `sequential:K` and pairs
   files -> the same pair list written to `OUT/pairs.txt` and `pycolmap.match_image_pairs`, so
   the pairs are exactly those `recon run` matches. COLMAP's own sequential matcher would also
   add quadratic-overlap pairs);
-* mapping: `recon.sfm.mapping_options` with the same working-to-full-resolution `px_scale`
+* mapping: `recon.core.sfm.mapping_options` with the same working-to-full-resolution `px_scale`
   (COLMAP's SIFT runs on the image downscaled to `max_size` and writes keypoints in full-
-  resolution pixels, exactly like our matcher), `recon.sfm.run_incremental`.
+  resolution pixels, exactly like our matcher), `recon.core.sfm.run_incremental`.
 
 Presets. `default`: COLMAP's SIFT defaults with `FeatureExtractionOptions.max_image_size =
 max_size`. `high`: also `sift.estimate_affine_shape` and `sift.domain_size_pooling` (COLMAP's
@@ -51,15 +51,15 @@ import pycolmap
 
 from matching.errors import InputError
 
-from . import sfm
-from .bench_pairs import PeakRss
-from .cli import UserError
-from .database import CAMERA_MODES, import_scene_images, read_verified
-from .pairs import make_pairs, parse_pairs_spec
-from .pipeline import _quiet_colmap, _Stages, remove_outputs
-from .report import PairRow, RunReport, write_json_atomic
-from .scene import scan_scene
-from .tracks import track_stats
+from recon.core import sfm
+from matching.memory import PeakRss
+from recon.errors import UserError
+from recon.core.database import CAMERA_MODES, import_scene_images, read_verified
+from recon.core.pairs import make_pairs, parse_pairs_spec
+from recon.core.pipeline import _quiet_colmap, _Stages, remove_outputs
+from recon.core.report import PairRow, RunReport, write_json_atomic
+from recon.core.scene import scan_scene
+from recon.core.tracks import track_stats
 
 Preset = Literal["default", "high"]
 PRESETS: tuple[str, ...] = ("default", "high")

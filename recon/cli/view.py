@@ -11,9 +11,9 @@ import typer
 def resolve_recording(target: Path) -> Path:
     """OUT_DIR -> OUT_DIR/recording.rrd (a `recon run` folder) or OUT_DIR/compare.rrd (a
     `recon compare` folder); a file is taken as is. UserError when there is none."""
-    from .cli import UserError
-    from .compare_rerun import COMPARE_RECORDING
-    from .rerun_log import RECORDING_NAME
+    from recon.errors import UserError
+    from recon.viz.compare_rerun import COMPARE_RECORDING
+    from recon.viz.rerun_log import RECORDING_NAME
 
     p = target.expanduser()
     if p.is_dir():
@@ -35,8 +35,8 @@ def register(app: typer.Typer) -> None:
         """Open a Rerun recording (OUT_DIR/recording.rrd or compare.rrd) in the Rerun viewer."""
         import subprocess
 
-        from .cli import UserError
-        from .rerun_log import find_viewer
+        from recon.errors import UserError
+        from recon.viz.rerun_log import find_viewer
 
         rrd = resolve_recording(target)
         exe = find_viewer()

@@ -29,7 +29,7 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   EXIF focal lengths are only a prior (and absent photos get 1.2 * max(w, h)), the principal
   point is not observable from a few views.
 * `triangulation.ignore_two_view_tracks` stays True (COLMAP's default): merged keypoints give
-  real multi-view tracks (see `recon.tracks`), so two-view-only points are not needed.
+  real multi-view tracks (see `recon.core.tracks`), so two-view-only points are not needed.
 * thresholds in pixels (`init_max_error`, `filter_max_reproj_error`, triangulation reprojection
   errors) are multiplied by `px_scale`, the working-to-full-resolution factor (capped at 3): the
   matcher localises keypoints to about a pixel *of the working image*, which is `px_scale`

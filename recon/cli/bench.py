@@ -1,5 +1,5 @@
 """`recon bench ...`: benchmarks. `recon bench pairs DATA_ROOT` runs the GT-homography pair benchmark;
-`recon bench scenes ROOT` runs `recon compare` on every scene under ROOT (see `recon.compare`)."""
+`recon bench scenes ROOT` runs `recon compare` on every scene under ROOT (see `recon.eval.compare`)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def parse_methods(text: str | None) -> list[str]:
     """Comma-separated method names (all of METHODS when empty); UserError for an unknown one."""
     from matching.registry import METHODS
 
-    from .cli import UserError
+    from recon.errors import UserError
 
     if not text or not text.strip():
         return list(METHODS)
@@ -48,8 +48,8 @@ def pairs_cmd(
     """Precision, points, time and peak memory of each method on each GT pair (paper's Table I)."""
     from matching.registry import get_matcher
 
-    from .bench_pairs import discover_pairs, print_report, run_bench
-    from .cli import UserError
+    from recon.eval.bench_pairs import discover_pairs, print_report, run_bench
+    from recon.errors import UserError
 
     names = parse_methods(methods)
     if not th > 0 or not math.isfinite(th):
@@ -98,7 +98,7 @@ def scenes_cmd(
 
     from rich.console import Console
 
-    from .compare import run_scenes, scenes_table
+    from recon.eval.compare import run_scenes, scenes_table
 
     presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
     names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
@@ -135,8 +135,8 @@ def difficulty_cmd(
 
     from rich.console import Console
 
-    from .cli import UserError
-    from .difficulty import difficulty_table, plot_difficulty, run_difficulty
+    from recon.errors import UserError
+    from recon.eval.difficulty import difficulty_table, plot_difficulty, run_difficulty
 
     try:
         counts = [int(v) for v in views.split(",") if v.strip()]

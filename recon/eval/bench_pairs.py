@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.io import load_gray, read_homography
+from matching.memory import PeakRss
 from matching.metrics import DEFAULT_TH, gt_reference, inlier_ratio, precision, reference_correct
 from matching.registry import PairMatcher, get_matcher
 from matching.store import FeatureStore
@@ -129,86 +130,6 @@ def discover_pairs(data_root: Path) -> list[GtPair]:
                 pairs.append(pair)
     order = {"oxford": 0, "hpatches": 1, "evd": 2}
     return sorted(pairs, key=lambda p: order.get(p.dataset, 3))  # stable: keeps discovery order
-
-
-# memory -----------------------------------------------------------------------------------------
-_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
-_STATM = Path("/proc/self/statm")
-
-
-def _rss_bytes() -> int | None:
-    try:
-        return int(_STATM.read_text().split()[1]) * _PAGE
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-def _release_free_memory() -> None:
-    """Give freed heap back to the OS so the next measurement starts from a clean baseline."""
-    gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-class PeakRss:
-    """Peak resident-set growth during a `with` block, sampled from /proc/self/statm.
-
-    Why RSS and not tracemalloc: tracemalloc sees only Python's allocator, not OpenCV's C++
-    buffers (image pyramids, simulated views, descriptors), which are most of the memory here.
-    A background thread samples the process RSS every `interval` s (OpenCV releases the GIL
-    in its calls, so sampling continues while they run); `peak_mb` is the highest sample minus
-    the RSS just before the block, in MB (2^20 bytes). Freed heap is trimmed (`malloc_trim`)
-    before the block so memory left over by an earlier method does not hide the growth.
-    Limits: spikes shorter than the interval can be missed, and the process baseline
-    (interpreter, numpy, OpenCV, the two loaded images: `before_mb`) is excluded; `total_mb`
-    is the absolute peak. Without /proc (not Linux) both are None.
-    """
-
-    def __init__(self, interval: float = 0.005):
-        self.interval = interval
-        self.before: int | None = None
-        self.peak: int | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval):
-            r = _rss_bytes()
-            if r is not None and (self.peak is None or r > self.peak):
-                self.peak = r
-
-    def __enter__(self) -> "PeakRss":
-        _release_free_memory()
-        self.before = _rss_bytes()
-        self.peak = self.before
-        if self.before is not None:
-            self._thread = threading.Thread(target=self._run, name="peak-rss", daemon=True)
-            self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
-        r = _rss_bytes()
-        if r is not None and self.peak is not None and r > self.peak:
-            self.peak = r
-
-    @property
-    def peak_mb(self) -> float | None:
-        if self.before is None or self.peak is None:
-            return None
-        return max(0, self.peak - self.before) / 2**20
-
-    @property
-    def total_mb(self) -> float | None:
-        return None if self.peak is None else self.peak / 2**20
-
-    @property
-    def before_mb(self) -> float | None:
-        return None if self.before is None else self.before / 2**20
 
 
 # running ----------------------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Logging a run (or one pair) to Rerun: the 3D model, per-pair diagnostics, plots and a summary.
 
-`RerunLogger` plugs into `recon.pipeline.run_scene` through its hooks (`on_pair`, `on_model`)
+`RerunLogger` plugs into `recon.core.pipeline.run_scene` through its hooks (`on_pair`, `on_model`)
 and never touches the pipeline itself. Entity layout of a recording:
 
 * `world/cameras/<image>`: `Transform3D` (COLMAP's `cam_from_world`, logged as
@@ -368,7 +368,7 @@ class RerunLogger:
         rec.set_time("pair", sequence=i)
         t0, t1 = self._thumb(name0), self._thumb(name1)
         if t0 is not None and t1 is not None:
-            from .vis import draw_matches
+            from recon.viz.vis import draw_matches
 
             (im0, s0), (im1, s1) = t0, t1
             small = dataclasses.replace(r, kpts0=(r.kpts0 * np.float32(s0)).astype(np.float32),

@@ -141,7 +141,7 @@ def scan_scene(scene_dir: str | Path, max_size: int | None = 1600, workers: int 
     """Scan and decode a scene: (Scene, {name: working-resolution 8-bit gray image}).
 
     Raises InputError for a missing folder or one without any image file; a folder with only
-    one usable image is returned as is (the caller decides, see `recon.pipeline`).
+    one usable image is returned as is (the caller decides, see `recon.core.pipeline`).
     `on_image(name)` is called after each decoded file (progress).
     """
     root = Path(scene_dir).resolve()

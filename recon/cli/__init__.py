@@ -1,6 +1,6 @@
 """The `recon` command line: a thin typer layer over library functions.
 
-Each command lives in its own `recon/cmd_*.py` module exposing `register(app)`. `main()` turns
+Each command lives in its own module of this package exposing `register(app)`. `main()` turns
 user errors (`InputError`, `UserError`) into one-line messages with a non-zero exit, never a
 traceback; Ctrl-C exits 130 after whatever was written has been left consistent.
 """
@@ -12,6 +12,7 @@ import sys
 import typer
 
 from matching.errors import InputError
+from recon.errors import UserError
 
 app = typer.Typer(
     name="recon",
@@ -22,15 +23,11 @@ app = typer.Typer(
 )
 
 
-class UserError(Exception):
-    """A problem the user can fix (bad arguments, refused output folder); printed on one line."""
-
-
 _registered = False
 
 
 def _register_commands() -> None:
-    """Import every `recon/cmd_*.py` and let it add its command(s), once per process."""
+    """Import every command module of this package and let it add its command(s), once per process."""
     global _registered
     if _registered:
         return
@@ -38,10 +35,8 @@ def _register_commands() -> None:
     import importlib
     import pkgutil
 
-    import recon
-
-    for mod in sorted(m.name for m in pkgutil.iter_modules(recon.__path__) if m.name.startswith("cmd_")):
-        importlib.import_module(f"recon.{mod}").register(app)
+    for mod in sorted(m.name for m in pkgutil.iter_modules(__path__)):
+        importlib.import_module(f"{__name__}.{mod}").register(app)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,7 @@
 `run_difficulty(out, views=(3, 4, 5, 7, 9, 13), max_azimuth_deg=78)` renders the stepped facade
 (`scenes.presets.facade_sweep`) seen from N cameras spread evenly over ±`max_azimuth_deg`, so the
 step between neighbours is 2·max_azimuth / (N − 1) (78° for N = 3 down to 13° for N = 13) while
-the extreme viewing angles stay the same; then runs `recon.compare.compare_scene` (stock COLMAP
+the extreme viewing angles stay the same; then runs `recon.eval.compare.compare_scene` (stock COLMAP
 `default` and `high`, and ours, same images and pairs) on each and collects, per step and method:
 registered images, median relative rotation and translation-direction errors against the
 rendered ground truth, AUC@5°, verified pairs, mean verified inliers per verified pair, and
@@ -26,8 +26,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from .compare import OURS_KEY, compare_scene
-from .jsonio import write_json_atomic
+from recon.eval.compare import OURS_KEY, compare_scene
+from recon.core.jsonio import write_json_atomic
 
 DEFAULT_VIEWS = (3, 4, 5, 7, 9, 13)
 DEFAULT_MAX_AZIMUTH = 78.0
@@ -77,7 +77,7 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
                    presets: Sequence[str] = DEFAULT_PRESETS, seed: int = 0, image_size: tuple[int, int] | None = None,
                    max_size: int = 1600, recompute: bool = False, log: Log = lambda _m: None) -> dict[str, Any]:
     """Render and compare every sweep scene; returns {"config", "rows"} (also OUT/difficulty.json)."""
-    from .cli import UserError
+    from recon.errors import UserError
     from scenes.presets import get_preset
 
     views = sorted({int(v) for v in views})

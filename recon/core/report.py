@@ -8,9 +8,9 @@
 * `tracks`: track lengths of the *verified* match graph before SfM, with keypoint merging
   (`merged`: `num_tracks`, `mean_length`, `max_length`, `inconsistent` tracks holding two
   keypoints of one image, `inconsistent_share` of the observations, and
-  `consistent_mean_length`, the figure the console shows; see `recon.tracks.track_stats`) and
+  `consistent_mean_length`, the figure the console shows; see `recon.core.tracks.track_stats`) and
   without (`unmerged`: every pair keeps its own keypoints, so every track has length exactly 2). `mean_track_length` above is the model's (after SfM with merging). A
-  reconstruction without merging can be measured with `--merge-px 0` (see `recon.tracks`);
+  reconstruction without merging can be measured with `--merge-px 0` (see `recon.core.tracks`);
 * `seconds_total`, `peak_mb` (peak resident memory of the process), `stages` (seconds per stage);
 * `pairs`: one row per pair in pair order: `image0`, `image1`, `reference` (name of the image
   the matcher simulated, or null), `best_view` ({t, phi, s} or null), `raw_matches` (matcher
@@ -31,7 +31,7 @@ Files are written to a temporary name and `os.replace`d, so a kill never leaves 
 
 from __future__ import annotations
 
-from .jsonio import write_json_atomic  # noqa: F401  (re-exported: pipeline, stock)
+from recon.core.jsonio import write_json_atomic  # noqa: F401  (re-exported: pipeline, stock)
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path

@@ -1,4 +1,4 @@
-"""Accuracy of a reconstruction against ground-truth cameras (`recon.gt`), matched by image NAME.
+"""Accuracy of a reconstruction against ground-truth cameras (`recon.eval.gt`), matched by image NAME.
 
 `evaluate_model(estimate, gt)`:
 

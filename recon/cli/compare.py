@@ -1,5 +1,5 @@
 """`recon compare SCENE_DIR`: the extra-affine pipeline against COLMAP's stock matching (see
-`recon.compare`)."""
+`recon.eval.compare`)."""
 
 from __future__ import annotations
 
@@ -35,12 +35,12 @@ def register(app: typer.Typer) -> None:
 
         from rich.console import Console
 
-        from .compare import compare_scene, compare_table
+        from recon.eval.compare import compare_scene, compare_table
 
-        from .cli import UserError
-        from .compare import load_gt
-        from .compare_rerun import COMPARE_RECORDING, log_comparison
-        from .rerun_log import find_viewer, parse_sink
+        from recon.errors import UserError
+        from recon.eval.compare import load_gt
+        from recon.viz.compare_rerun import COMPARE_RECORDING, log_comparison
+        from recon.viz.rerun_log import find_viewer, parse_sink
 
         presets = [p.strip() for p in stock_preset.split(",") if p.strip()]
         out_dir = (out or scene_dir / "compare").expanduser()

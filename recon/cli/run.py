@@ -1,4 +1,4 @@
-"""`recon run SCENE_DIR`: photos to a COLMAP sparse model (see `recon.pipeline`)."""
+"""`recon run SCENE_DIR`: photos to a COLMAP sparse model (see `recon.core.pipeline`)."""
 
 from __future__ import annotations
 
@@ -34,11 +34,11 @@ def register(app: typer.Typer) -> None:
 
         from rich.console import Console
 
-        from .cli import UserError
-        from .pipeline import RunConfig, run_scene
-        from .report import summary_table
-        from .rerun_log import RECORDING_NAME, RerunLogger, find_viewer, parse_sink
-        from .scene import find_image_dir
+        from recon.errors import UserError
+        from recon.core.pipeline import RunConfig, run_scene
+        from recon.core.report import summary_table
+        from recon.viz.rerun_log import RECORDING_NAME, RerunLogger, find_viewer, parse_sink
+        from recon.core.scene import find_image_dir
 
         cfg = RunConfig(out=out, method=method, pairs=pairs, max_size=max_size, camera_mode=camera_mode,
                         merge_px=merge_px, seed=seed, workers=workers, overwrite=overwrite,

@@ -18,7 +18,7 @@ def render_command(
     list_presets: bool = typer.Option(False, "--list-presets", help="List the presets and exit."),
 ) -> None:
     """Render piecewise-planar scenes from cameras with viewing angles up to 80+ degrees."""
-    from recon.cli import UserError
+    from recon.errors import UserError
     from scenes.presets import PRESETS, get_preset
     from scenes.render import render_scene
 

@@ -2,8 +2,8 @@
 
 Stages (each timed in `report.stages`, each with a progress bar on stderr):
 
-1. `load`: find and decode the photos (`recon.scene`), skip bad ones, downscale to `max_size`.
-2. `match`: every pair of `--pairs` (`recon.pairs`) is an independent task
+1. `load`: find and decode the photos (`recon.core.scene`), skip bad ones, downscale to `max_size`.
+2. `match`: every pair of `--pairs` (`recon.core.pairs`) is an independent task
    `match_pair_task(store, matcher, name0, name1) -> PairResult` over a shared, thread-safe
    per-image `FeatureStore` (features computed once per image and run, persisted under
    `OUT/cache/features`), run on a ThreadPoolExecutor (OpenCV releases the GIL). Each finished
@@ -13,13 +13,13 @@ Stages (each timed in `report.stages`, each with a progress bar on stderr):
    order, never completion order, so a fixed `--seed` gives the same output whatever the
    scheduling. The tasks only need (store, matcher, two names), so a later version can hand them
    to Dask or Ray.
-3. `tracks`: per-image keypoint merging (`recon.tracks`, radius `--merge-px` in working-
+3. `tracks`: per-image keypoint merging (`recon.core.tracks`, radius `--merge-px` in working-
    resolution pixels) so 3D points can be seen in more than two images.
-4. `database` + `verify`: `recon.database` writes cameras (EXIF), images, keypoints (+0.5 for
+4. `database` + `verify`: `recon.core.database` writes cameras (EXIF), images, keypoints (+0.5 for
    COLMAP's pixel centres) and *all* the matcher's matches (the pipeline asks the matcher for
    `final_homography=False`: a homography is the wrong model for a 3D scene; COLMAP's own F / E
    verification decides), into `database.db.tmp`, then renames it to `database.db`.
-5. `sfm`: `pycolmap.incremental_mapping` with wide-baseline options (`recon.sfm`), the largest
+5. `sfm`: `pycolmap.incremental_mapping` with wide-baseline options (`recon.core.sfm`), the largest
    model written to `OUT/sparse/0` through a temporary folder.
 6. `export`: `points.ply` (open3d; `--clean-points` drops statistical outliers) and
    `report.json` (temp + `os.replace`).
@@ -53,16 +53,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.errors import InputError
+from matching.memory import peak_rss_mb
 from matching.registry import METHODS, PairMatcher, get_matcher
 from matching.store import FeatureStore
 from matching.types import CoarseScore, PairResult, ViewParams
 
-from .cli import UserError
-from .database import CAMERA_MODES, build_database, read_verified, two_view_options
-from .pairs import PairsSpec, make_pairs, parse_pairs_spec
-from .report import PairRow, RunReport, write_json_atomic, write_report
-from .scene import Scene, SceneImage, find_image_dir, list_candidates, scan_scene, to_full_res
-from .tracks import PairMatches, merge_tracks, track_stats
+from recon.errors import UserError
+from recon.core.database import CAMERA_MODES, build_database, read_verified, two_view_options
+from recon.core.pairs import PairsSpec, make_pairs, parse_pairs_spec
+from recon.core.report import PairRow, RunReport, write_json_atomic, write_report
+from recon.core.scene import Scene, SceneImage, find_image_dir, list_candidates, scan_scene, to_full_res
+from recon.core.tracks import PairMatches, merge_tracks, track_stats
 
 PAIR_CACHE_VERSION = "1"
 STATE_VERSION = "1"
@@ -374,16 +375,6 @@ def _quiet_colmap() -> Iterator[None]:
         pycolmap.logging.minloglevel = old
 
 
-def _peak_mb() -> float:
-    """Peak resident memory of this process so far, MB (0.0 where the OS does not say)."""
-    try:
-        import resource
-    except ImportError:  # Windows
-        return 0.0
-    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KB on Linux, bytes on macOS
-    return float(r) / (1024.0 * 1024.0) if sys.platform == "darwin" else float(r) / 1024.0
-
-
 def _fingerprint(*parts: Any) -> str:
     h = hashlib.sha1()
     for p in parts:
@@ -587,7 +578,7 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
             warn("no pair passed geometric verification (too few or inconsistent matches)")
 
         # 5. SfM -------------------------------------------------------------------------------
-        from . import sfm
+        from recon.core import sfm
 
         opts = sfm.mapping_options(cfg.seed, sfm.MAPPING_THREADS, px_scale)
         report.sfm_options = sfm.options_summary(opts)
@@ -649,7 +640,7 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
                         stale.unlink()
         report.stages = {k: round(v, 3) for k, v in stages.times.items()}
         report.seconds_total = round(time.perf_counter() - t_start, 3)
-        report.peak_mb = round(_peak_mb(), 1)
+        report.peak_mb = round(peak_rss_mb(), 1)
         write_report(report, out / "report.json")
     if on_model is not None:
         on_model(rec, report)

@@ -3,11 +3,11 @@
 `compare_scene(scene_dir, out, presets=("default",), max_size, pairs, seed)` runs, in this one
 process and on the same images and pairs:
 
-* stock COLMAP (`recon.stock.run_stock`) for each preset into `OUT/stock-<preset>/`;
-* ours (`recon.pipeline.run_scene`, method extra-affine) into `OUT/extra_affine/`;
+* stock COLMAP (`recon.eval.stock.run_stock`) for each preset into `OUT/stock-<preset>/`;
+* ours (`recon.core.pipeline.run_scene`, method extra-affine) into `OUT/extra_affine/`;
 
-then evaluates both models against the scene's ground truth when it has one (`recon.gt`,
-`recon.evaluate`, matched by image name), compares the two point clouds (`compare_clouds`) and
+then evaluates both models against the scene's ground truth when it has one (`recon.eval.gt`,
+`recon.eval.evaluate`, matched by image name), compares the two point clouds (`compare_clouds`) and
 writes `OUT/compare.json` atomically:
 
     {"scene", "out", "config", "gt", "warnings",
@@ -17,7 +17,7 @@ writes `OUT/compare.json` atomically:
 
 `stock` is the first preset's run. Each method object holds the keys of `recon run`'s
 report.json plus `verified_pairs`, `inliers_per_pair_mean/median`, `peak_mb` (the absolute RSS
-peak during that run, sampled by `recon.bench_pairs.PeakRss`: `ru_maxrss` would carry an earlier
+peak during that run, sampled by `matching.memory.PeakRss`: `ru_maxrss` would carry an earlier
 run's peak into later ones; the run's own figure is kept as `report_peak_mb`), and, with GT,
 `rel_rot_err_deg_median`, `rel_trans_err_deg_median`, `auc_5/10/20`, `center_err_median`,
 `center_err_rel_median` (the full evaluation without per-pair rows is under `gt_eval`).
@@ -52,12 +52,12 @@ import numpy as np
 
 from matching.errors import InputError
 
-from .bench_pairs import PeakRss
-from .cli import UserError
-from .evaluate import center, evaluate_model, umeyama
-from .gt import find_gt, gt_source
-from .jsonio import write_json_atomic
-from .scene import IMAGE_EXTS
+from matching.memory import PeakRss
+from recon.errors import UserError
+from recon.eval.evaluate import center, evaluate_model, umeyama
+from recon.eval.gt import find_gt, gt_source
+from recon.core.jsonio import write_json_atomic
+from recon.core.scene import IMAGE_EXTS
 
 OURS = "extra-affine"  # the matcher
 OURS_KEY = "extra_affine"  # its key in compare.json and its output folder
@@ -140,7 +140,7 @@ def method_result(method: str, report: dict[str, Any] | None, peak: PeakRss, gt,
 
 def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: int, progress: bool = False,
              strict: bool = True) -> dict[str, Any]:
-    from .pipeline import RunConfig, run_scene
+    from recon.core.pipeline import RunConfig, run_scene
 
     report, err = None, None
     with PeakRss() as mem:
@@ -161,7 +161,7 @@ def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: in
 
 def run_stock_preset(scene_dir: Path, out: Path, gt, preset: str, max_size: int, pairs: str, seed: int,
                      strict: bool = True) -> dict[str, Any]:
-    from .stock import run_stock
+    from recon.eval.stock import run_stock
 
     report, err = None, None
     with PeakRss() as mem:
@@ -180,7 +180,7 @@ def run_stock_preset(scene_dir: Path, out: Path, gt, preset: str, max_size: int,
 # point clouds -----------------------------------------------------------------------------------
 def camera_centers(rec) -> dict[str, np.ndarray]:
     """{image name: camera centre} of a pycolmap.Reconstruction's registered images."""
-    from .evaluate import poses_from_estimate
+    from recon.eval.evaluate import poses_from_estimate
 
     return {n: center(P) for n, P in poses_from_estimate(rec).items()}
 
@@ -278,8 +278,8 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
 
     `strict`: InputError / UserError (unusable scene, bad options) propagate; otherwise they are
     recorded as that run's error (the scene benchmark keeps going)."""
-    from .pipeline import RunConfig
-    from .stock import PRESETS
+    from recon.core.pipeline import RunConfig
+    from recon.eval.stock import PRESETS
 
     scene_dir = Path(scene_dir).expanduser()
     if not scene_dir.is_dir():

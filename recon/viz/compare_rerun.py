@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .compare import OURS_KEY, load_model, points_xyz
-from .evaluate import center, poses_from_estimate, umeyama
-from .rerun_log import Sink, _esc, log_camera
+from recon.eval.compare import OURS_KEY, load_model, points_xyz
+from recon.eval.evaluate import center, poses_from_estimate, umeyama
+from recon.viz.rerun_log import Sink, _esc, log_camera
 
 COMPARE_RECORDING = "compare.rrd"
 METHOD_COLORS: dict[str, tuple[int, int, int]] = {
@@ -104,7 +104,7 @@ def _read(method: str, out: str | Path) -> _Model | None:
 def summary_markdown(res: dict[str, Any], notes: dict[str, str], frame: str) -> str:
     from rich.console import Console
 
-    from .compare import compare_table
+    from recon.eval.compare import compare_table
 
     console = Console(record=True, width=140, file=io.StringIO())
     console.print(compare_table(res))
@@ -127,7 +127,7 @@ def log_comparison(sink: Sink, res: dict[str, Any], gt: dict[str, Any] | None = 
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from .rerun_log import RerunLogger
+    from recon.viz.rerun_log import RerunLogger
 
     if not sink.enabled:
         return None

@@ -81,15 +81,15 @@ def match_command(
     rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
 ) -> None:
     """Match two images and report the reference choice, best view, matches and timings."""
-    from recon.cli import UserError
-    from recon.jsonio import write_json_atomic
-    from recon.vis import draw_matches, write_image_atomic
+    from recon.errors import UserError
+    from recon.core.jsonio import write_json_atomic
+    from recon.viz.vis import draw_matches, write_image_atomic
 
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if variant not in ("default", "paper"):
         raise UserError(f"unknown variant {variant!r}; choose 'default' or 'paper'")
-    from recon.rerun_log import find_viewer, log_single_pair, parse_sink
+    from recon.viz.rerun_log import find_viewer, log_single_pair, parse_sink
 
     try:
         sink = parse_sink(rerun)

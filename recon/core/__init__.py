@@ -1,0 +1,1 @@
+"""The pipeline core: scene, pairs, tracks, database, SfM, report, and the run."""

@@ -1,0 +1,1 @@
+"""Evaluation: ground truth, pose metrics, stock COLMAP, comparisons and benchmarks."""

@@ -1,0 +1,1 @@
+"""Visualisation: the Rerun recordings and match pictures."""
