@@ -38,9 +38,6 @@ import hashlib
 import json
 import os
 import shutil
-import stat
-import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
@@ -50,26 +47,24 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from matching.errors import InputError
 from matching.memory import peak_rss_mb
 from matching.registry import METHODS, PairMatcher, get_matcher
 from matching.store import FeatureStore
-from matching.types import CoarseScore, PairResult, ViewParams
+from matching.types import PairResult
 
 from recon.errors import UserError
 from recon.core.database import CAMERA_MODES, build_database, read_verified, two_view_options
 from recon.core.pairs import PairsSpec, make_pairs, parse_pairs_spec
+from recon.core.outdir import prepare_out
+from recon.core.paircache import load_pair_result, pair_cache_key, result_to_full_res, save_pair_result
+from recon.core.progress import Progress, quiet_colmap
 from recon.core.report import PairRow, RunReport, write_json_atomic, write_report
-from recon.core.scene import Scene, SceneImage, find_image_dir, list_candidates, scan_scene, to_full_res
+from recon.core.scene import Scene, find_image_dir, list_candidates, scan_scene
 from recon.core.tracks import PairMatches, merge_tracks, track_stats
 
-PAIR_CACHE_VERSION = "1"
 STATE_VERSION = "1"
-SCENE_MARKER = ".recon_scene.json"
-OWN_OUTPUTS = ("cache", "recording.rrd", "database.db", "database.db.tmp", "database.db-journal", "database.db-wal",
-               "database.db-shm", "sparse", "points.ply", "report.json", SCENE_MARKER)
 
 
 # configuration ----------------------------------------------------------------------------------
@@ -158,223 +153,6 @@ def matcher_identity(matcher: PairMatcher) -> str:
     return f"{kind}:{getattr(matcher, 'name', '')}"
 
 
-def _affine_full_from_work(scale_xy: tuple[float, float]) -> NDArray[np.float64]:
-    """A with x_work = A @ x_full (pixel-centre convention, see `scene.to_full_res`)."""
-    sx, sy = scale_xy
-    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]], np.float64)
-
-
-def result_to_full_res(r: PairResult, im0: SceneImage, im1: SceneImage) -> PairResult:
-    """The same result in full-resolution pixels, keeping only matched keypoints (compact)."""
-    m = np.asarray(r.matches, np.int64).reshape(-1, 2)
-    used0 = np.unique(m[:, 0]) if len(m) else np.zeros(0, np.int64)
-    used1 = np.unique(m[:, 1]) if len(m) else np.zeros(0, np.int64)
-    k0 = to_full_res(np.asarray(r.kpts0).reshape(-1, 2)[used0], im0.scale_xy)
-    k1 = to_full_res(np.asarray(r.kpts1).reshape(-1, 2)[used1], im1.scale_xy)
-    mm = (np.stack([np.searchsorted(used0, m[:, 0]), np.searchsorted(used1, m[:, 1])], 1).astype(np.int32)
-          if len(m) else np.zeros((0, 2), np.int32))
-    H = None
-    if r.H_1_from_0 is not None:
-        A0, A1 = _affine_full_from_work(im0.scale_xy), _affine_full_from_work(im1.scale_xy)
-        H = np.linalg.inv(A1) @ np.asarray(r.H_1_from_0, np.float64) @ A0
-        H = H / H[2, 2]
-    return PairResult(
-        method=r.method, kpts0=k0, kpts1=k1, matches=mm,
-        distances=np.asarray(r.distances, np.float32).reshape(-1), reference=r.reference,
-        reference_reason=r.reference_reason, f0=r.f0, f1=r.f1, best_views=list(r.best_views),
-        coarse_scores=r.coarse_scores, H_1_from_0=H, inlier_mask=r.inlier_mask, escalation=r.escalation,
-        reason=r.reason, timings=dict(r.timings),
-        image_sizes=((im0.width, im0.height), (im1.width, im1.height)),
-    )
-
-
-def save_pair_result(path: Path, r: PairResult) -> None:
-    """Atomic .npz of a (full-resolution, compact) PairResult."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    views = np.array([[v.t, v.phi, v.s] for v in r.best_views], np.float64).reshape(-1, 3)
-    coarse = np.array([[c.view.t, c.view.phi, c.view.s, c.matches, c.inliers, c.score]
-                       for c in r.coarse_scores], np.float64).reshape(-1, 6)
-    meta = dict(method=r.method, reference=r.reference, reference_reason=r.reference_reason,
-                f0=r.f0, f1=r.f1, escalation=r.escalation, reason=r.reason, timings=r.timings,
-                image_sizes=r.image_sizes, version=PAIR_CACHE_VERSION)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
-    np.savez(tmp, kpts0=np.asarray(r.kpts0, np.float32), kpts1=np.asarray(r.kpts1, np.float32),
-             matches=np.asarray(r.matches, np.int32), distances=np.asarray(r.distances, np.float32),
-             views=views, coarse=coarse, H=(np.zeros((0, 3)) if r.H_1_from_0 is None else np.asarray(r.H_1_from_0)),
-             inlier_mask=(np.zeros(0, bool) if r.inlier_mask is None else np.asarray(r.inlier_mask, bool)),
-             has_mask=np.array(r.inlier_mask is not None), meta=np.array(json.dumps(meta)))
-    os.replace(tmp, path)
-
-
-def load_pair_result(path: Path) -> PairResult | None:
-    """The cached PairResult, or None when absent or unreadable (then it is recomputed)."""
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            if meta.get("version") != PAIR_CACHE_VERSION:
-                return None
-            H = z["H"]
-            sizes = meta.get("image_sizes")
-            return PairResult(
-                method=meta["method"], kpts0=z["kpts0"], kpts1=z["kpts1"], matches=z["matches"],
-                distances=z["distances"], reference=meta.get("reference"),
-                reference_reason=meta.get("reference_reason", ""), f0=meta.get("f0"), f1=meta.get("f1"),
-                best_views=[ViewParams(float(t), float(p), float(s)) for t, p, s in z["views"]],
-                coarse_scores=[CoarseScore(ViewParams(float(t), float(p), float(s)), int(m), int(i), float(sc))
-                               for t, p, s, m, i, sc in (z["coarse"] if "coarse" in z.files else [])],
-                H_1_from_0=H if H.shape == (3, 3) else None,
-                inlier_mask=z["inlier_mask"] if bool(z["has_mask"]) else None,
-                escalation=meta.get("escalation", ""), reason=meta.get("reason", ""),
-                timings=meta.get("timings", {}),
-                image_sizes=tuple(tuple(s) for s in sizes) if sizes else None,  # type: ignore[arg-type]
-            )
-    except Exception:  # a damaged cache file is recomputed, never trusted
-        return None
-
-
-def pair_cache_key(matcher_id: str, im0: SceneImage, im1: SceneImage) -> str:
-    h = hashlib.sha1()
-    for part in (PAIR_CACHE_VERSION, matcher_id, im0.digest, f"{im0.work_width}x{im0.work_height}",
-                 im1.digest, f"{im1.work_width}x{im1.work_height}"):
-        h.update(part.encode())
-        h.update(b"\0")
-    return h.hexdigest()[:24]
-
-
-# output folder ----------------------------------------------------------------------------------
-def _no_write_bits(p: Path) -> bool:
-    try:
-        return not (p.stat().st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
-    except OSError:
-        return False
-
-
-def _check_writable(out: Path, default_out: bool) -> None:
-    """UserError unless `out` can be created and written. A folder without any write permission
-    bit counts as read-only even for root (who could write anyway): its owner made it so."""
-    hint = ("pass --out DIR to write the reconstruction elsewhere" if default_out
-            else "choose another --out DIR")
-    probe = out
-    while not probe.exists():
-        if probe.parent == probe:
-            break
-        probe = probe.parent
-    if probe.exists() and (not os.access(probe, os.W_OK | os.X_OK) or _no_write_bits(probe)):
-        raise UserError(f"cannot write to {out}: {probe} is read-only; {hint}")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        t = out / f".write-test-{os.getpid()}"
-        t.write_bytes(b"")
-        t.unlink()
-    except OSError as e:
-        raise UserError(f"cannot write to {out}: {e.strerror or e}; {hint}") from None
-
-
-def remove_outputs(out: Path, names: tuple[str, ...] = OWN_OUTPUTS) -> None:
-    """Delete the named outputs in `out` and the temporary leftovers of killed runs, nothing else."""
-    for name in names:
-        p = out / name
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p, ignore_errors=True)
-        elif p.exists() or p.is_symlink():
-            p.unlink()
-    for p in out.glob(".*tmp-*"):  # leftovers of a killed run: .sfm-tmp-<pid>, .report.json.tmp-<pid>, ...
-        if p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
-
-
-def prepare_out(out: Path, root: Path, candidates: list[str], overwrite: bool, default_out: bool) -> None:
-    """Create/check the output folder and tie it to this scene (see module doc)."""
-    marker = out / SCENE_MARKER
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out}: exists and is not a folder")
-    if out.is_dir():
-        if marker.is_file():
-            try:
-                rec = json.loads(marker.read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                rec = {}
-            if not overwrite and rec.get("scene") != str(root):
-                raise UserError(f"{out} holds the reconstruction of another scene ({rec.get('scene', '?')}); "
-                                f"pass --overwrite to replace it or choose another --out")
-            if not overwrite and rec.get("images") != candidates:
-                raise UserError(f"{out} was made from a different image list of this scene; "
-                                f"pass --overwrite to start over or choose another --out")
-        else:  # never write into (or, with --overwrite, delete from) somebody else's folder
-            stray = sorted(p.name for p in out.iterdir() if p.name not in OWN_OUTPUTS and not p.name.startswith(".write-test"))
-            if stray:
-                raise UserError(f"{out} is not empty and is not a recon output folder "
-                                f"(found {stray[0]}); choose another --out")
-    _check_writable(out, default_out)
-    if overwrite:
-        remove_outputs(out)
-    write_json_atomic(marker, {"scene": str(root), "image_dir": str(find_image_dir(root)), "images": candidates})
-
-
-# progress ---------------------------------------------------------------------------------------
-class _Progress:
-    """rich progress bars on stderr, or nothing (tests, --no-progress)."""
-
-    def __init__(self, enabled: bool):
-        self._p = None
-        if enabled:
-            from rich.console import Console
-            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn,
-                                       TextColumn, TimeElapsedColumn)
-
-            self._p = Progress(SpinnerColumn(), TextColumn("{task.description:<10}"), BarColumn(),
-                               MofNCompleteColumn(), TimeElapsedColumn(),
-                               console=Console(stderr=True), transient=False)
-
-    def __enter__(self):
-        if self._p is not None:
-            self._p.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._p is not None:
-            self._p.__exit__(*exc)
-
-    def task(self, desc: str, total: int | None) -> Callable[..., None]:
-        if self._p is None:
-            return lambda *a, **k: None
-        tid = self._p.add_task(desc, total=total)
-        p = self._p
-
-        def advance(n: int = 1, done: bool = False) -> None:
-            if done:
-                t = p.tasks[[t.id for t in p.tasks].index(tid)]
-                p.update(tid, total=t.completed or 1, completed=t.completed or 1)
-            else:
-                p.advance(tid, n)
-
-        return advance
-
-    def print(self, msg: str) -> None:
-        if self._p is not None:
-            self._p.console.print(msg, markup=False, highlight=False)
-        else:
-            print(msg, file=sys.stderr)
-
-
-@contextmanager
-def _quiet_colmap() -> Iterator[None]:
-    """COLMAP logs every step (and its own failures, e.g. "Failed to create any sparse model")
-    to stderr; the pipeline reports everything itself on one line, so keep only fatal messages."""
-    import pycolmap
-
-    old = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 3
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
-
-
 def _fingerprint(*parts: Any) -> str:
     h = hashlib.sha1()
     for p in parts:
@@ -434,7 +212,7 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
     prepare_out(out, root, candidates, cfg.overwrite, default_out=cfg.out is None)
 
     report = RunReport(scene=str(root), out=str(out), config=cfg.to_dict())
-    progress = _Progress(cfg.progress)
+    progress = Progress(cfg.progress)
 
     def warn(msg: str) -> None:
         report.warnings.append(msg)
@@ -452,7 +230,7 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *,
     if state.get("version") != STATE_VERSION:
         state = {"version": STATE_VERSION}
 
-    with progress, _quiet_colmap():
+    with progress, quiet_colmap():
         # 1. load ------------------------------------------------------------------------------
         with stages("load"):
             adv = progress.task("load", len(candidates))
@@ -659,7 +437,7 @@ def _read_model(model_dir: Path):
 
 
 def _match_all(scene: Scene, pairs: list[tuple[str, str]], matcher: PairMatcher, mid: str,
-               store: FeatureStore, pair_dir: Path, workers: int, progress: _Progress,
+               store: FeatureStore, pair_dir: Path, workers: int, progress: Progress,
                warn: Callable[[str], None],
                on_pair: Callable[[int, str, str, PairResult, bool], None] | None,
                ) -> tuple[list[PairResult], list[bool]]:

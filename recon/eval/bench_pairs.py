@@ -14,14 +14,11 @@ Layouts recognised (at the root itself, or one or two folder levels below it):
 
 from __future__ import annotations
 
-import ctypes
-import gc
 import json
 import math
 import os
 import re
 import statistics
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass

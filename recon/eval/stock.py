@@ -56,7 +56,9 @@ from matching.memory import PeakRss
 from recon.errors import UserError
 from recon.core.database import CAMERA_MODES, import_scene_images, read_verified
 from recon.core.pairs import make_pairs, parse_pairs_spec
-from recon.core.pipeline import _quiet_colmap, _Stages, remove_outputs
+from recon.core.outdir import remove_outputs
+from recon.core.pipeline import _Stages
+from recon.core.progress import quiet_colmap
 from recon.core.report import PairRow, RunReport, write_json_atomic
 from recon.core.scene import scan_scene
 from recon.core.tracks import track_stats
@@ -200,7 +202,7 @@ def run_stock(scene_dir: str | Path, out_dir: str | Path, preset: Preset = "defa
         write_json_atomic(out / "report.json", d)
         return d
 
-    with PeakRss() as mem, _quiet_colmap():
+    with PeakRss() as mem, quiet_colmap():
         try:
             # load: the same usable images as recon run ------------------------------------------
             with stage("load"):
