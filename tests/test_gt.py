@@ -1,5 +1,5 @@
 """Ground-truth readers (`recon.eval.gt`) and the model evaluation (`recon.eval.evaluate`), on small
-synthetic fixtures written in tmp_path (no pycolmap, no shared data)."""
+synthetic fixtures written in tmp_path (no shared data)."""
 
 from __future__ import annotations
 
@@ -134,6 +134,29 @@ def test_read_colmap_text(tmp_path, with_points_lines):
     assert c1.size == (800, 600) and np.allclose(c1.K, [[700, 0, 399.5], [0, 700, 299.5], [0, 0, 1]])
     P0 = poses["img00.jpg"]
     assert np.allclose(c0.center, -P0[:, :3].T @ P0[:, 3])
+
+
+def test_colmap_camera_models_from_pycolmap_and_names_with_spaces(tmp_path):
+    """Every COLMAP model pycolmap knows gives K from its focal / principal-point parameters;
+    a model without them is refused; an image name with spaces is kept whole."""
+    gt = tmp_path / "gt"
+    gt.mkdir()
+    (gt / "cameras.txt").write_text(
+        "1 OPENCV_FISHEYE 640 480 500 510 320.5 240.5 0.1 0.01 0 0\n"
+        "2 FOV 640 480 400 410 300.5 200.5 0.9\n"
+        "3 EUCM 640 480 450 460 330.5 250.5 0.5 1.0\n"
+        "4 SIMPLE_DIVISION 640 480 600 310.5 230.5 -0.1\n")
+    (gt / "images.txt").write_text("".join(f"{k} 1 0 0 0 0 0 {k} {k} my photo {k}.jpg\n\n" for k in (1, 2, 3, 4)))
+    out = read_colmap_text(gt)
+    assert sorted(out) == [f"my photo {k}.jpg" for k in (1, 2, 3, 4)]
+    K = {k: out[f"my photo {k}.jpg"].K for k in (1, 2, 3, 4)}
+    assert np.allclose(K[1], [[500, 0, 320], [0, 510, 240], [0, 0, 1]])
+    assert np.allclose(K[2], [[400, 0, 300], [0, 410, 200], [0, 0, 1]])
+    assert np.allclose(K[3], [[450, 0, 330], [0, 460, 250], [0, 0, 1]])
+    assert np.allclose(K[4], [[600, 0, 310], [0, 600, 230], [0, 0, 1]])
+    (gt / "cameras.txt").write_text("1 EQUIRECTANGULAR 640 480 640 480\n")
+    with pytest.raises(InputError, match=r"cameras\.txt:1: camera model EQUIRECTANGULAR has no focal length"):
+        read_colmap_text(gt)
 
 
 def test_find_gt_colmap_and_unknown_image(tmp_path):
