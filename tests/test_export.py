@@ -13,6 +13,7 @@ its exports are then read by readers written here, independent of pycolmap's wri
 from __future__ import annotations
 
 import json
+import shutil
 import struct
 from pathlib import Path
 
@@ -303,6 +304,26 @@ def test_colmap_text_reads_back_as_the_same_model(run_dir, model, tmp_path):
         assert np.allclose(gt[im.name].cam_from_world, im.cam_from_world().matrix(), atol=1e-12)
 
 
+def test_colmap_text_warns_about_names_with_spaces(run_dir, scene, tmp_path):
+    """COLMAP's text readers end a name at its first space: the export says so (the 3dgs and
+    nerfstudio exports, binary and json, keep such names)."""
+    rec = pycolmap.Reconstruction(str(run_dir / "sparse" / "0"))
+    (tmp_path / "photos").mkdir()
+    for iid in rec.reg_image_ids():
+        im = rec.image(iid)
+        new = f"my {im.name}"
+        shutil.copy(scene / "images" / im.name, tmp_path / "photos" / new)
+        im.name = new
+    (tmp_path / "out" / "sparse" / "0").mkdir(parents=True)
+    rec.write(str(tmp_path / "out" / "sparse" / "0"))
+    (tmp_path / "out" / ".recon_scene.json").write_text(json.dumps({"image_dir": str(tmp_path / "photos")}))
+    res = export_run(ExportConfig(tmp_path / "out", "colmap-text"))
+    assert len(res.warnings) == 1 and "first space" in res.warnings[0] and "'my view_00.png'" in res.warnings[0]
+    res = export_run(ExportConfig(tmp_path / "out", "3dgs"))
+    assert not res.warnings
+    assert any(im["name"] == "my view_00.png" for im in read_images_bin(res.model_dir / "images.bin").values())
+
+
 # errors and atomicity ------------------------------------------------------------------------
 def test_user_errors(run_dir, scene, tmp_path):
     with pytest.raises(UserError, match="no model"):
@@ -325,6 +346,16 @@ def test_user_errors(run_dir, scene, tmp_path):
     with pytest.raises(UserError, match="holds no earlier export"):  # never delete somebody's folder
         export_run(ExportConfig(run_dir, "colmap-text", to=busy, overwrite=True))
     assert (busy / "notes.txt").read_text() == "mine"
+    # photos that are no longer the model's (here: rotated): one line, never COLMAP's abort
+    fake = tmp_path / "fake"
+    (fake / "photos").mkdir(parents=True)
+    shutil.copytree(run_dir / "sparse", fake / "out" / "sparse")
+    for p in (scene / "images").iterdir():
+        cv2.imwrite(str(fake / "photos" / p.name), cv2.rotate(cv2.imread(str(p)), cv2.ROTATE_90_CLOCKWISE))
+    (fake / "out" / ".recon_scene.json").write_text(json.dumps({"scene": str(fake), "image_dir": str(fake / "photos")}))
+    with pytest.raises(UserError, match=r"view_00\.png: 300x400 px, but the model's camera is 400x300 px"):
+        export_run(ExportConfig(fake / "out", "3dgs"))
+    assert sorted(p.name for p in (fake / "out").iterdir()) == [".recon_scene.json", "sparse"]  # nothing left
     # an export is replaced with --overwrite
     export_run(ExportConfig(run_dir, "colmap-text", to=tmp_path / "txt"))
     export_run(ExportConfig(run_dir, "colmap-text", to=tmp_path / "txt", overwrite=True))

@@ -47,6 +47,8 @@ def register(app: typer.Typer) -> None:
 
         res = export_run(ExportConfig(out_dir=out_dir, format=format.value, to=to, overwrite=overwrite,
                                       keep_distortion=keep_distortion, workers=workers))
+        for w in res.warnings:
+            print(f"recon: warning: {w}", file=sys.stderr)
         print(f"recon: {res.format} export of {res.num_images} images ({', '.join(res.camera_models)} "
               f"cameras, {res.num_points3D} points) in {res.path}", file=sys.stderr)
         print("recon: " + NEXT_STEP[res.format].format(path=res.path, model=res.model_dir), file=sys.stderr)

@@ -13,7 +13,7 @@ from recon.core.jsonio import write_json_atomic
 from recon.errors import UserError
 from recon.export.colmap import write_colmap_text, write_undistorted
 from recon.export.nerfstudio import write_nerfstudio
-from recon.export.source import load_source
+from recon.export.source import check_photo_sizes, load_source
 from recon.export.target import EXPORT_MARKER, check_target, staged
 
 FORMATS: tuple[str, ...] = ("colmap-text", "3dgs", "nerfstudio")
@@ -59,6 +59,7 @@ class ExportResult:
     num_images: int  # registered images exported
     camera_models: list[str] = field(default_factory=list)  # COLMAP models of the exported cameras
     num_points3D: int = 0
+    warnings: list[str] = field(default_factory=list)  # one line each
 
 
 def _copy_photos(names: list[str], image_dir: Path, dst: Path) -> None:
@@ -75,6 +76,8 @@ def export_run(cfg: ExportConfig) -> ExportResult:
     to = cfg.to if cfg.to is not None else src.out_dir / "export" / cfg.format
     dst = check_target(to, src.out_dir, src.image_dir, cfg.overwrite)
     threads = cfg.workers or -1
+    if cfg.format != "colmap-text":  # the formats that read the photos
+        check_photo_sizes(src)
     with staged(dst) as stage:
         if cfg.format == "colmap-text":
             model_dir = write_colmap_text(src.rec, stage)
@@ -101,5 +104,10 @@ def export_run(cfg: ExportConfig) -> ExportResult:
             "undistorted": cfg.format != "colmap-text" and not cfg.keep_distortion,
             "num_images": int(rec.num_reg_images()), "camera_models": models})
         rel_model = model_dir.relative_to(stage)
+    warnings = []
+    spaced = [n for n in src.registered_names if any(c.isspace() for c in n)]
+    if cfg.format == "colmap-text" and spaced:
+        warnings.append(f"COLMAP's text format ends an image name at its first space, so readers will cut "
+                        f"{len(spaced)} name(s) such as {spaced[0]!r}; the binary model {src.model_dir} keeps them")
     return ExportResult(cfg.format, dst, dst / rel_model, int(rec.num_reg_images()), models,
-                        int(rec.num_points3D()))
+                        int(rec.num_points3D()), warnings)

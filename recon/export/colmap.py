@@ -16,6 +16,7 @@ from pathlib import Path
 import pycolmap
 
 from recon.core.progress import quiet_colmap
+from recon.errors import UserError
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")  # what Gaussian-splatting trainers accept
 
@@ -31,11 +32,16 @@ def write_colmap_text(rec: pycolmap.Reconstruction, dst: Path) -> Path:
 def write_undistorted(model_dir: Path, image_dir: Path, dst: Path, num_threads: int = -1) -> Path:
     """`dst/images/` (undistorted photos, same names) and `dst/sparse/0/*.bin` (PINHOLE cameras);
     returns the model folder. `dst` must be empty."""
-    with quiet_colmap():
-        pycolmap.undistort_images(str(dst), str(model_dir), str(image_dir), output_type="COLMAP",
-                                  copy_policy=pycolmap.FileCopyType.copy,
-                                  undistort_options=pycolmap.UndistortCameraOptions(),
-                                  num_threads=num_threads)
+    try:
+        with quiet_colmap():
+            pycolmap.undistort_images(str(dst), str(model_dir), str(image_dir), output_type="COLMAP",
+                                      copy_policy=pycolmap.FileCopyType.copy,
+                                      undistort_options=pycolmap.UndistortCameraOptions(),
+                                      num_threads=num_threads)
+    except (ValueError, RuntimeError) as e:  # COLMAP's checks, e.g. a photo whose size is not its camera's
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise UserError(f"{image_dir}: COLMAP's undistorter refused the photos ({first}); are they still "
+                        "the files the model was made from?") from None
     flat = dst / "sparse"
     aside = dst / ".sparse-flat"
     os.replace(flat, aside)

@@ -74,3 +74,27 @@ def load_source(out_dir: str | Path) -> ExportSource:
         if not (image_dir / name).is_file():
             raise UserError(f"{image_dir / name}: photo of the model is missing")
     return src
+
+
+def check_photo_sizes(src: ExportSource) -> None:
+    """UserError naming the first registered photo whose pixel size is not its camera's.
+
+    COLMAP's undistorter checks this too, but from a worker thread whose failure can abort the
+    whole process (pycolmap 4.2: "Uncaught exceptions in thread pool destructor"), so it is
+    checked here first, from the file headers (Pillow reads the size without decoding; rotation
+    flags in EXIF are not applied, as COLMAP does not apply them either).
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    for iid in sorted(src.rec.reg_image_ids()):
+        im = src.rec.image(iid)
+        cam = src.rec.camera(im.camera_id)
+        path = src.image_dir / im.name
+        try:
+            with Image.open(path) as f:
+                w, h = f.size
+        except (OSError, UnidentifiedImageError) as e:
+            raise UserError(f"{path}: cannot read the photo ({getattr(e, 'strerror', None) or e})") from None
+        if (w, h) != (cam.width, cam.height):
+            raise UserError(f"{path}: {w}x{h} px, but the model's camera is {cam.width}x{cam.height} px; "
+                            "the export needs the photos the model was made from")

@@ -17,6 +17,7 @@ or Ctrl-C the temporary folder is removed.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 from collections.abc import Iterator
@@ -61,6 +62,7 @@ def check_target(to: Path, out_dir: Path, image_dir: Path, overwrite: bool) -> P
 @contextmanager
 def staged(dst: Path) -> Iterator[Path]:
     """Build in a temporary sibling of `dst`, then rename it into place (see module doc)."""
+    made_parent = not dst.parent.exists()
     try:
         dst.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -83,5 +85,8 @@ def staged(dst: Path) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
         if moved_aside and not dst.exists():  # the rename failed: put the previous export back
             os.replace(old, dst)
+        if made_parent:  # e.g. OUT_DIR/export made for nothing
+            with contextlib.suppress(OSError):
+                dst.parent.rmdir()
         raise
     shutil.rmtree(old, ignore_errors=True)
