@@ -1,5 +1,5 @@
 """Ground-truth readers (`recon.eval.gt`) and the model evaluation (`recon.eval.evaluate`), on small
-synthetic fixtures written in tmp_path (no pycolmap, no shared data)."""
+synthetic fixtures written in tmp_path (no shared data)."""
 
 from __future__ import annotations
 
@@ -136,6 +136,29 @@ def test_read_colmap_text(tmp_path, with_points_lines):
     assert np.allclose(c0.center, -P0[:, :3].T @ P0[:, 3])
 
 
+def test_colmap_camera_models_from_pycolmap_and_names_with_spaces(tmp_path):
+    """Every COLMAP model pycolmap knows gives K from its focal / principal-point parameters;
+    a model without them is refused; an image name with spaces is kept whole."""
+    gt = tmp_path / "gt"
+    gt.mkdir()
+    (gt / "cameras.txt").write_text(
+        "1 OPENCV_FISHEYE 640 480 500 510 320.5 240.5 0.1 0.01 0 0\n"
+        "2 FOV 640 480 400 410 300.5 200.5 0.9\n"
+        "3 EUCM 640 480 450 460 330.5 250.5 0.5 1.0\n"
+        "4 SIMPLE_DIVISION 640 480 600 310.5 230.5 -0.1\n")
+    (gt / "images.txt").write_text("".join(f"{k} 1 0 0 0 0 0 {k} {k} my photo {k}.jpg\n\n" for k in (1, 2, 3, 4)))
+    out = read_colmap_text(gt)
+    assert sorted(out) == [f"my photo {k}.jpg" for k in (1, 2, 3, 4)]
+    K = {k: out[f"my photo {k}.jpg"].K for k in (1, 2, 3, 4)}
+    assert np.allclose(K[1], [[500, 0, 320], [0, 510, 240], [0, 0, 1]])
+    assert np.allclose(K[2], [[400, 0, 300], [0, 410, 200], [0, 0, 1]])
+    assert np.allclose(K[3], [[450, 0, 330], [0, 460, 250], [0, 0, 1]])
+    assert np.allclose(K[4], [[600, 0, 310], [0, 600, 230], [0, 0, 1]])
+    (gt / "cameras.txt").write_text("1 EQUIRECTANGULAR 640 480 640 480\n")
+    with pytest.raises(InputError, match=r"cameras\.txt:1: camera model EQUIRECTANGULAR has no focal length"):
+        read_colmap_text(gt)
+
+
 def test_find_gt_colmap_and_unknown_image(tmp_path):
     poses = ring(3)
     scene = make_scene(tmp_path / "s", poses)
@@ -262,6 +285,41 @@ def test_umeyama_recovers_similarity():
         umeyama(src[:2], dst[:2])
     with pytest.raises(ValueError):  # collinear
         umeyama(np.outer(np.arange(4.0), [1, 1, 0]), np.outer(np.arange(4.0), [0, 1, 1]))
+
+
+def _umeyama_reference(src, dst):
+    """Umeyama (1991) in closed form with numpy: the implementation pycolmap replaced."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / ((xs ** 2).sum() / len(src)))
+    return s, R, mu_d - s * R @ mu_s
+
+
+def test_umeyama_matches_the_closed_form_on_noisy_points():
+    """pycolmap's estimate_sim3d gives the closed form's numbers (1e-9 relative) where the
+    similarity does not fit exactly, including a reflection-prone case (det(U) det(V) < 0)."""
+    rng = np.random.default_rng(1)
+    for k in range(200):
+        n = int(rng.integers(3, 40))
+        src = rng.normal(size=(n, 3)) * rng.uniform(0.1, 100)
+        R = rot(rng.normal(size=3), rng.uniform(-180, 180))
+        dst = rng.uniform(0.01, 50) * src @ R.T + rng.normal(size=3) * 10 + rng.normal(size=(n, 3)) * rng.uniform(0, 2)
+        if k == 0:
+            dst = src * [1, 1, -1]  # a mirror image: the best rotation needs the sign correction
+        got = np.concatenate([[umeyama(src, dst)[0]], umeyama(src, dst)[1].ravel(), umeyama(src, dst)[2]])
+        s, Rr, t = _umeyama_reference(src, dst)
+        want = np.concatenate([[s], Rr.ravel(), t])
+        assert np.abs(got - want).max() <= 1e-9 * np.abs(want).max()
+    # without scale: a rigid motion
+    src = rng.normal(size=(8, 3))
+    R = rot((0, 1, 1), 25)
+    s, Re, t = umeyama(src, src @ R.T + [0.5, 0, 0], with_scale=False)
+    assert s == 1.0 and np.allclose(Re, R) and np.allclose(t, [0.5, 0, 0])
 
 
 def test_pose_auc():

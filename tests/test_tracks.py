@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon.core.tracks import PairMatches, connected_components, merge_tracks, track_stats
+from recon.core.tracks import PairMatches, _leader_cluster, connected_components, merge_tracks, track_stats
 
 
 def _three_view_pairs(n=60, noise=0.3, seed=0):
@@ -108,6 +108,43 @@ def test_merging_is_deterministic_and_exact_repeats_collapse():
     m = np.stack([np.arange(40), np.arange(40)], 1)
     mt = merge_tracks([PairMatches("A", "B", k, k, m), PairMatches("A", "C", k, k, m)], 0.01)
     assert len(mt.keypoints["A"]) == 40 and np.allclose(np.sort(mt.keypoints["A"], 0), np.sort(k, 0))
+
+
+def _leader_cluster_reference(pts, counts, radius):
+    """The rule in its plainest form: visit by (count desc, first appearance); join the nearest
+    leader with dx*dx + dy*dy <= radius^2 (ties: the earliest leader) or lead."""
+    order = sorted(range(len(pts)), key=lambda i: (-counts[i], i))
+    leaders, labels = [], [0] * len(pts)
+    for i in order:
+        x, y = pts[i]
+        best, best_d = -1, radius * radius
+        for lid, (lx, ly) in enumerate(leaders):
+            d = (lx - x) * (lx - x) + (ly - y) * (ly - y)
+            if d < best_d or (d == best_d and best < 0):
+                best, best_d = lid, d
+        if best < 0:
+            best = len(leaders)
+            leaders.append((float(x), float(y)))
+        labels[i] = best
+    return labels
+
+
+def test_kdtree_leader_clustering_equals_the_sequential_rule():
+    """Random clumps, points exactly `radius` apart, equidistant leaders, and a long chain of
+    neighbours (more dependent steps than the vectorised rounds: the sequential finish)."""
+    rng = np.random.default_rng(0)
+    centres = rng.uniform(0, 200, (40, 2))
+    clumps = (centres[rng.integers(0, 40, 600)] + rng.normal(0, 1.2, (600, 2)))
+    # a point exactly `radius` from a leader joins it; a point 1.5 px from two leaders joins the earlier
+    exact = np.array([[300.0, 0.0], [302.0, 0.0], [310.0, 0.0], [313.0, 0.0], [311.5, 0.0]])
+    chain = np.stack([400.0 + 1.9 * np.arange(150), np.zeros(150)], 1)  # 150 links of 1.9 px
+    pts = np.concatenate([clumps, exact, chain])
+    counts = np.concatenate([rng.integers(1, 4, 600), [9, 1, 9, 9, 1], 200 - np.arange(150)])
+    got = _leader_cluster(pts, counts.astype(np.int64), 2.0)
+    assert got.tolist() == _leader_cluster_reference(pts, counts.tolist(), 2.0)
+    e = got[600:605]
+    assert e[1] == e[0] and e[4] == e[2] != e[3]
+    assert len(set(got[-150:].tolist())) == 75  # the chain: every other link leads
 
 
 def test_connected_components_matches_union_find():

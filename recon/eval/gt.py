@@ -22,6 +22,14 @@ Layouts under `SCENE_DIR/gt/` (`find_gt` picks the first present):
 
 Any malformed file, or GT naming an image the scene lacks, raises `matching.errors.InputError`
 whose message names the file (the benchmark reports it and carries on without GT).
+
+pycolmap supplies what COLMAP defines: the camera models (parameter count, which parameters are
+the focal lengths and the principal point, via `pycolmap.Camera.create_from_model_name`) and the
+quaternion convention (`pycolmap.Rotation3d`). The lines themselves are read here, not by
+`pycolmap.Reconstruction.read_text`, because on GT files that reader measured worse: it needs a
+points3D.txt GT folders lack, reads the next image line as the POINTS2D line of an image written
+without one (silently losing every other image), cuts names at the first space, accepts a zero
+quaternion, and reports malformed lines without file or line number.
 """
 
 from __future__ import annotations
@@ -31,33 +39,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 from numpy.typing import NDArray
 
 from matching.errors import InputError
 
 COLMAP_PIXEL_OFFSET = 0.5  # COLMAP pixel coordinate = OpenCV pixel coordinate + 0.5
 
-# COLMAP camera models -> (number of params, how to build K from the params)
-_F_CX_CY = "f cx cy"
-_FX_FY_CX_CY = "fx fy cx cy"
-COLMAP_MODELS: dict[str, tuple[int, str]] = {
-    "SIMPLE_PINHOLE": (3, _F_CX_CY),
-    "PINHOLE": (4, _FX_FY_CX_CY),
-    "SIMPLE_RADIAL": (4, _F_CX_CY),
-    "RADIAL": (5, _F_CX_CY),
-    "OPENCV": (8, _FX_FY_CX_CY),
-    "OPENCV_FISHEYE": (8, _FX_FY_CX_CY),
-    "FULL_OPENCV": (12, _FX_FY_CX_CY),
-    "FOV": (5, _FX_FY_CX_CY),
-    "SIMPLE_RADIAL_FISHEYE": (4, _F_CX_CY),
-    "RADIAL_FISHEYE": (5, _F_CX_CY),
-    "THIN_PRISM_FISHEYE": (12, _FX_FY_CX_CY),
-    "RAD_TAN_THIN_PRISM_FISHEYE": (16, _FX_FY_CX_CY),
-    "SIMPLE_DIVISION": (4, _F_CX_CY),
-    "DIVISION": (5, _FX_FY_CX_CY),
-    "SIMPLE_FISHEYE": (3, _F_CX_CY),
-    "FISHEYE": (4, _FX_FY_CX_CY),
-}
 _ROT_TOL = 1e-3  # |R R^T - I| and |det R - 1| tolerance for a rotation read from a file
 
 
@@ -104,15 +92,17 @@ def _check_rotation(path: Path, R: NDArray[np.float64], what: str = "rotation") 
 
 
 def quat_to_rot(qw: float, qx: float, qy: float, qz: float) -> NDArray[np.float64]:
-    """Rotation matrix of a (normalised) Hamilton quaternion, w first (COLMAP's order)."""
-    q = np.array([qw, qx, qy, qz], np.float64)
-    q = q / np.linalg.norm(q)
-    w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    """Rotation matrix of a Hamilton quaternion, w first (COLMAP's file order), normalised first;
+    pycolmap's Rotation3d takes it x, y, z, w."""
+    q = np.array([qx, qy, qz, qw], np.float64)
+    return np.asarray(pycolmap.Rotation3d(q / np.linalg.norm(q)).matrix(), np.float64)
+
+
+def _colmap_camera_model(name: str) -> pycolmap.Camera | None:
+    """A default camera of COLMAP's model `name` (its parameter layout), None if COLMAP has no such model."""
+    if name == "INVALID" or name not in pycolmap.CameraModelId.__members__:
+        return None
+    return pycolmap.Camera.create_from_model_name(0, name, 1.0, 1, 1)
 
 
 def _check_names(gt: dict[str, GtCamera], scene_names: Iterable[str] | None,
@@ -142,19 +132,19 @@ def read_colmap_cameras_txt(path: str | Path) -> dict[int, tuple[NDArray[np.floa
         except ValueError:
             raise InputError(f"{path}:{lineno}: camera id, width and height must be integers: {line!r}") from None
         model = tok[1].upper()
-        if model not in COLMAP_MODELS:
+        layout = _colmap_camera_model(model)
+        if layout is None:
             raise InputError(f"{path}:{lineno}: unknown camera model {tok[1]!r}")
-        n, layout = COLMAP_MODELS[model]
+        n, f_idx, pp_idx = len(layout.params), layout.focal_length_idxs(), layout.principal_point_idxs()
         params = _floats(path, lineno, tok[4:])
         if len(params) != n:
             raise InputError(f"{path}:{lineno}: camera model {model} takes {n} parameters, got {len(params)}")
+        if not f_idx or len(pp_idx) != 2:
+            raise InputError(f"{path}:{lineno}: camera model {model} has no focal length and principal point")
         if w <= 0 or h <= 0:
             raise InputError(f"{path}:{lineno}: image size {w}x{h} must be positive")
-        if layout == _F_CX_CY:
-            fx = fy = params[0]
-            cx, cy = params[1], params[2]
-        else:
-            fx, fy, cx, cy = params[:4]
+        fx, fy = params[f_idx[0]], params[f_idx[-1]]
+        cx, cy = params[pp_idx[0]], params[pp_idx[1]]
         if fx <= 0 or fy <= 0:
             raise InputError(f"{path}:{lineno}: focal length must be positive")
         if cid in cams:
