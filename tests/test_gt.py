@@ -242,6 +242,7 @@ def test_find_gt_strecha_unknown_image(tmp_path):
     assert sorted(find_gt(scene, check_names=False)) == sorted(poses)
 
 
+@pytest.mark.requires_shared("scenes/fountain_P11/gt")
 def test_real_fountain_gt(shared_data):
     scene = shared_data / "scenes" / "fountain_P11"
     if not (scene / "gt").is_dir():
