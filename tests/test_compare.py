@@ -13,15 +13,13 @@ from recon.eval.compare import GT_KEYS, compare_clouds, compare_scene, run_scene
 SIZE = (640, 480)  # facade-extreme at this size: stock default registers 0/4, ours 4/4
 
 
-@pytest.fixture(scope="module")
-def facade(tmp_path_factory) -> Path:
-    from scenes.render import render_scene
-
-    d = tmp_path_factory.mktemp("fx") / "facade-extreme"
-    render_scene(d, "facade-extreme", seed=0, image_size=SIZE)
-    return d
+@pytest.fixture()
+def facade(facade_extreme_scene) -> Path:
+    """facade-extreme at SIZE, alone in its parent folder, rendered once per session (conftest)."""
+    return facade_extreme_scene
 
 
+@pytest.mark.slow
 def test_compare_stock_fails_ours_succeeds_via_cli(facade, tmp_path, capsys):
     from recon.cli import main
 
@@ -79,6 +77,7 @@ def _logged_centres(rrd: Path, prefix: str) -> dict[str, np.ndarray]:
     return out
 
 
+@pytest.mark.slow
 def test_compare_recording_aligns_every_model_to_the_ground_truth(facade, tmp_path):
     """--stock-preset high (which registers this scene) and ours, logged in the GT frame: each
     model's logged camera centres land on the GT centres."""
@@ -104,6 +103,7 @@ def test_compare_recording_aligns_every_model_to_the_ground_truth(facade, tmp_pa
         assert err < 0.02 * extent, (method, err, extent)
 
 
+@pytest.mark.slow
 def test_malformed_gt_warns_and_completes(facade, tmp_path):
     import shutil
 
@@ -157,6 +157,7 @@ def test_cloud_alignment_needs_three_common_images():
     assert c["status"] == "skipped" and "3 images" in c["message"]
 
 
+@pytest.mark.slow
 def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
     from recon.cli import main
 
@@ -177,6 +178,7 @@ def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
     assert "no such folder" in err and "bogus" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_run_scenes_unknown_scene(facade):
     from recon.errors import UserError
 

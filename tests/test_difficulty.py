@@ -5,10 +5,13 @@ from __future__ import annotations
 import importlib.util
 import json
 
+import pytest
+
 from recon.cli import main
 from recon.eval.difficulty import step_deg
 
 
+@pytest.mark.slow
 def test_difficulty_sweep_rows_table_plot_and_reuse(tmp_path, capsys):
     """One wide step (4 views over +-80 deg: 53 deg apart): stock default registers nothing, ours
     all four; the rows carry the GT rotation error; a second call reuses the finished scene."""
