@@ -127,6 +127,7 @@ def test_growth_replay_and_plots(runs):
         assert any(c.startswith("BarChart:") for c in reused[ent])
 
 
+@pytest.mark.slow
 def test_match_logs_one_pair_with_coarse_heatmap(scene, tmp_path):
     imgs = sorted((scene / "images").iterdir())[:2]
     rrd = tmp_path / "pair.rrd"
