@@ -48,7 +48,13 @@ def missing_shared(*paths: str) -> list[Path]:
 
 
 def skip_reason(missing: list[Path]) -> str:
-    return f"shared data not found: {', '.join(map(str, missing))} (set RECON_SHARED_DATA)"
+    """'...not found' naming what the test reads (relative to SHARED_DATA), or the missing files."""
+    if not SHARED_DATA.is_dir():
+        leaves = [p for p in missing if p != SHARED_DATA and not any(p in q.parents for q in missing)]
+        wanted = ", ".join(str(p.relative_to(SHARED_DATA)) for p in leaves)
+        return f"shared data folder {SHARED_DATA} not found (set RECON_SHARED_DATA)" + (f"; reads {wanted}" if wanted else "")
+    top = [p for p in missing if not any(q in p.parents for q in missing)]  # a missing folder, not its files
+    return f"shared data not found: {', '.join(map(str, top))} (set RECON_SHARED_DATA)"
 
 
 def skip_unless_shared(*paths: str) -> Path:
@@ -61,17 +67,15 @@ def skip_unless_shared(*paths: str) -> Path:
 
 # markers ----------------------------------------------------------------------------------------
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark the users of the shared-data fixtures `requires_shared`; skip (at the test's own
+    location in the summary) the tests whose `requires_shared` paths are missing."""
     for item in items:
         if any(f in getattr(item, "fixturenames", ()) for f in SHARED_FIXTURES):
-            item.add_marker(pytest.mark.requires_shared)
-
-
-def pytest_runtest_setup(item: pytest.Item) -> None:
-    for mark in item.iter_markers("requires_shared"):
-        if mark.args:  # without paths: one of the fixtures skips, naming what it looked for
-            missing = missing_shared(*mark.args)
-            if missing:
-                pytest.skip(skip_reason(missing))
+            item.add_marker(pytest.mark.requires_shared)  # the fixture skips, naming what it looked for
+        missing = sorted({p for mark in item.iter_markers("requires_shared") for p in missing_shared(*mark.args)
+                          if mark.args})
+        if missing:
+            item.add_marker(pytest.mark.skip(reason=skip_reason(missing)))
 
 
 # real data --------------------------------------------------------------------------------------
