@@ -98,11 +98,12 @@ def evd_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
-def scene_dir() -> Callable[[str], Path]:
-    """scene_dir("fountain_P11") -> SHARED_DATA/scenes/fountain_P11 (skips when its images/ is missing)."""
+def scene_dir() -> Callable[..., Path]:
+    """scene_dir("fountain_P11") -> SHARED_DATA/scenes/fountain_P11, skipping when the scene or its
+    images/ is missing; scene_dir("fountain_P11", "gt") checks gt/ instead of images/."""
 
-    def get(name: str) -> Path:
-        return skip_unless_shared(f"scenes/{name}", f"scenes/{name}/images")
+    def get(name: str, *parts: str) -> Path:
+        return skip_unless_shared(f"scenes/{name}", *(f"scenes/{name}/{p}" for p in parts or ("images",)))
 
     return get
 
