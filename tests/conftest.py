@@ -52,7 +52,8 @@ def skip_reason(missing: list[Path]) -> str:
     if not SHARED_DATA.is_dir():
         leaves = [p for p in missing if p != SHARED_DATA and not any(p in q.parents for q in missing)]
         wanted = ", ".join(str(p.relative_to(SHARED_DATA)) for p in leaves)
-        return f"shared data folder {SHARED_DATA} not found (set RECON_SHARED_DATA)" + (f"; reads {wanted}" if wanted else "")
+        reads = f"; reads {wanted}" if wanted else ""
+        return f"shared data folder {SHARED_DATA} not found (set RECON_SHARED_DATA){reads}"
     top = [p for p in missing if not any(q in p.parents for q in missing)]  # a missing folder, not its files
     return f"shared data not found: {', '.join(map(str, top))} (set RECON_SHARED_DATA)"
 

@@ -26,7 +26,8 @@ def _report(**kw) -> RunReport:
                     pairs=[PairRow("a.png", "b.png", reference="a.png", best_view={"t": 2.0, "phi": 36.0, "s": 1.0},
                                    raw_matches=np.int64(300), merged_matches=280, verified_inliers=250,
                                    config="CALIBRATED", seconds=1.5),
-                           PairRow("a.png", "c.png", raw_matches=90, merged_matches=85, verified_inliers=60, cached=True),
+                           PairRow("a.png", "c.png", raw_matches=90, merged_matches=85, verified_inliers=60,
+                                   cached=True),
                            PairRow("b.png", "c.png", reason="no match")],
                     skipped=[{"name": "broken.JPG", "reason": "not a readable image"}],
                     warnings=["broken.JPG: not a readable image"], config={"method": "extra-affine", "seed": 0})
