@@ -77,7 +77,8 @@ def test_baseline_methods_through_the_same_command(graf_small, method, capsys):
     assert method in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("kind", ["gray", "rgba", "u16"])
+@pytest.mark.parametrize("kind", ["gray", pytest.param("rgba", marks=pytest.mark.slow),
+                                  pytest.param("u16", marks=pytest.mark.slow)])  # a full match each
 def test_gray_rgba_and_16bit_images_are_accepted(graf_small, tmp_path, kind, capsys):
     a, b, h = graf_small
     img = cv2.imdecode(np.fromfile(str(a), np.uint8), cv2.IMREAD_COLOR)
