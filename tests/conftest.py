@@ -60,6 +60,7 @@ def skip_reason(missing: list[Path]) -> str:
 
 def skip_unless_shared(*paths: str) -> Path:
     """SHARED_DATA / paths[0] (or SHARED_DATA), skipping the calling test when any path is missing."""
+    __tracebackhide__ = True  # the skip is reported at the test's line, not here
     missing = missing_shared(*paths)
     if missing:
         pytest.skip(skip_reason(missing))
@@ -104,6 +105,7 @@ def scene_dir() -> Callable[..., Path]:
     images/ is missing; scene_dir("fountain_P11", "gt") checks gt/ instead of images/."""
 
     def get(name: str, *parts: str) -> Path:
+        __tracebackhide__ = True
         return skip_unless_shared(f"scenes/{name}", *(f"scenes/{name}/{p}" for p in parts or ("images",)))
 
     return get
