@@ -29,8 +29,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -p no:dash -q
 
+## Everything but the end-to-end runs (tests marked slow, see tests/conftest.py): under a minute.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -p no:dash -q -m "not slow"
+	$(BIN)/python -m pytest -p no:dash -q -m "not slow" --durations=15
 
 bench-pairs: $(STAMP)
 	$(BIN)/recon bench pairs ../shared/data --json benchmarks/results/pairs.json

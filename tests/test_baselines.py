@@ -2,22 +2,19 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
+from conftest import SHARED_DATA
 from matching.baselines import AsiftConfig, make_baseline
 from matching.io import load_gray, read_homography
 from matching.metrics import precision
 from matching.registry import get_matcher
 from matching.store import FeatureStore
 
-DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
-GRAF = DATA / "oxford" / "graf"
-needs_data = pytest.mark.skipif(not GRAF.is_dir(), reason=f"shared test data not found at {GRAF}")
+GRAF = SHARED_DATA / "oxford" / "graf"
+needs_data = pytest.mark.requires_shared("oxford/graf/img1.png", "oxford/graf/H1to2p")
 
 
 def _store(img0, img1) -> FeatureStore:

@@ -3,23 +3,22 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from conftest import SHARED_DATA as DATA
 from matching.memory import PeakRss
 from recon.eval.bench_pairs import discover_pairs, ratio_line, summarize, write_json
 
-DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
-needs_data = pytest.mark.skipif(not (DATA / "oxford" / "graf").is_dir(), reason=f"shared test data not found at {DATA}")
+needs_data = pytest.mark.requires_shared("oxford/graf/img1.png", "oxford/graf/img2.png", "oxford/graf/H1to2p")
 
 REQUIRED = {"pair", "method", "points", "correct", "precision", "seconds", "peak_mb", "ref_correct"}
 
 
-@needs_data
+@pytest.mark.requires_shared("oxford/graf", "hpatches/v_dogman", "hpatches/v_adam_noH", "evd/1", "evd/2", "evd/h")
 def test_discover_shared_data():
     pairs = discover_pairs(DATA)
     names = [p.name for p in pairs]
@@ -55,6 +54,18 @@ def _tiny_root(root: Path, scale: float = 0.5) -> Path:
     # pixel centres: x_small = (x + 0.5) * scale - 0.5
     S = np.array([[scale, 0, 0.5 * scale - 0.5], [0, scale, 0.5 * scale - 0.5], [0, 0, 1.0]])
     np.savetxt(d / "H1to2p", S @ H @ np.linalg.inv(S))
+    return root
+
+
+def _synthetic_root(root: Path) -> Path:
+    """An oxford/graf-shaped folder (img1, img2, H1to2p) of a random texture and its shifted copy."""
+    d = root / "oxford" / "graf"
+    d.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    img = cv2.resize(rng.integers(0, 255, (60, 80), dtype=np.uint8), (320, 240), interpolation=cv2.INTER_CUBIC)
+    cv2.imwrite(str(d / "img1.png"), img)
+    cv2.imwrite(str(d / "img2.png"), np.roll(img, 5, axis=1))
+    np.savetxt(d / "H1to2p", np.array([[1.0, 0, 5], [0, 1, 0], [0, 0, 1]]))
     return root
 
 
@@ -99,11 +110,11 @@ def test_cli_no_pairs_is_one_line(tmp_path, capsys):
     assert main(["bench", "pairs", str(tmp_path / "nope"), "--methods", "sift"]) == 2
 
 
-@needs_data
 def test_cli_only_filter_matches_nothing(tmp_path, capsys):
     from recon.cli import main
 
-    root = _tiny_root(tmp_path / "data")
+    root = _synthetic_root(tmp_path / "data")
+    assert [p.name for p in discover_pairs(root)] == ["graf 1-2"]
     assert main(["bench", "pairs", str(root), "--methods", "orb", "--only", "boat"]) == 2
     assert "boat" in capsys.readouterr().err
 

@@ -1,8 +1,13 @@
-"""`recon match` on good and bad input: one-line errors, non-zero exits, never a traceback."""
+"""`recon match` on good and bad input: one-line errors, non-zero exits, never a traceback.
+
+Precision is measured on a real pair (graf 1-3, from the shared data); the error paths only need
+two valid images and use two views of the rendered corner (no shared data).
+"""
 
 from __future__ import annotations
 
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -12,15 +17,15 @@ from recon.cli import main
 
 
 @pytest.fixture()
-def graf_small(shared_data, tmp_path):
+def graf_small(graf_dir, tmp_path):
     """graf img1 and img3 at half size (PNG) and the homography adjusted to that size."""
-    H = np.loadtxt(shared_data / "oxford" / "graf" / "H1to3p")
+    H = np.loadtxt(graf_dir / "H1to3p")
     S = np.diag([0.5, 0.5, 1.0])
     S[:2, 2] = -0.25  # pixel centres: x_half = (x + 0.5) / 2 - 0.5
     H_half = S @ H @ np.linalg.inv(S)
     paths = []
     for k in (1, 3):
-        img = cv2.imread(str(shared_data / "oxford" / "graf" / f"img{k}.png"))
+        img = cv2.imread(str(graf_dir / f"img{k}.png"))
         small = cv2.resize(img, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
         p = tmp_path / f"img {k} ü.png"  # spaces and non-ASCII in paths
         cv2.imencode(".png", small)[1].tofile(str(p))
@@ -28,6 +33,17 @@ def graf_small(shared_data, tmp_path):
     hp = tmp_path / "H1to3"
     np.savetxt(hp, H_half / H_half[2, 2])
     return paths[0], paths[1], hp
+
+
+@pytest.fixture()
+def image_pair(corner_scene, tmp_path):
+    """Two views of the rendered corner (session fixture), copied under names with spaces and non-ASCII."""
+    paths = []
+    for k in (0, 1):
+        p = tmp_path / f"vue {k} ü.png"
+        shutil.copy(corner_scene / "images" / f"view_{k:02d}.png", p)
+        paths.append(p)
+    return paths[0], paths[1]
 
 
 def _one_line_error(capsys, *needles):
@@ -54,14 +70,15 @@ def test_match_reports_precision_and_writes_outputs(graf_small, tmp_path, capsys
     assert vis_img.shape[1] == 2 * cv2.imdecode(np.fromfile(str(a), np.uint8), cv2.IMREAD_COLOR).shape[1]
 
 
-@pytest.mark.parametrize("method", ["sift", "asift"])
+@pytest.mark.parametrize("method", ["sift", pytest.param("asift", marks=pytest.mark.slow)])
 def test_baseline_methods_through_the_same_command(graf_small, method, capsys):
     a, b, h = graf_small
     assert main(["match", str(a), str(b), "--method", method, "--gt", str(h)]) == 0
     assert method in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("kind", ["gray", "rgba", "u16"])
+@pytest.mark.parametrize("kind", ["gray", pytest.param("rgba", marks=pytest.mark.slow),
+                                  pytest.param("u16", marks=pytest.mark.slow)])  # a full match each
 def test_gray_rgba_and_16bit_images_are_accepted(graf_small, tmp_path, kind, capsys):
     a, b, h = graf_small
     img = cv2.imdecode(np.fromfile(str(a), np.uint8), cv2.IMREAD_COLOR)
@@ -75,23 +92,23 @@ def test_gray_rgba_and_16bit_images_are_accepted(graf_small, tmp_path, kind, cap
     assert json.loads(js.read_text())["precision"] >= 0.85
 
 
-def test_missing_file(graf_small, tmp_path, capsys):
-    a, _, _ = graf_small
+def test_missing_file(image_pair, tmp_path, capsys):
+    a, _ = image_pair
     assert main(["match", str(a), str(tmp_path / "nope.png")]) == 2
     _one_line_error(capsys, "nope.png", "no such file")
 
 
-def test_non_image_file(graf_small, tmp_path, capsys):
-    a, _, _ = graf_small
+def test_non_image_file(image_pair, tmp_path, capsys):
+    a, _ = image_pair
     bad = tmp_path / "notes.png"
     bad.write_text("this is not an image")
     assert main(["match", str(a), str(bad)]) == 2
     _one_line_error(capsys, "notes.png", "not a readable image")
 
 
-def test_unreadable_file(graf_small, tmp_path, capsys):
+def test_unreadable_file(image_pair, tmp_path, capsys):
     import os
-    a, b, _ = graf_small
+    a, b = image_pair
     locked = tmp_path / "locked.png"
     locked.write_bytes(b.read_bytes())
     locked.chmod(0)
@@ -103,8 +120,8 @@ def test_unreadable_file(graf_small, tmp_path, capsys):
     _one_line_error(capsys, "locked.png")
 
 
-def test_tiny_image(graf_small, tmp_path, capsys):
-    a, _, _ = graf_small
+def test_tiny_image(image_pair, tmp_path, capsys):
+    a, _ = image_pair
     tiny = tmp_path / "tiny.png"
     cv2.imwrite(str(tiny), np.zeros((20, 40), np.uint8))
     assert main(["match", str(a), str(tiny)]) == 2
@@ -112,22 +129,23 @@ def test_tiny_image(graf_small, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("content", ["1 2 3\n4 5 6\n", "a b c d e f g h i", "0 0 0 0 0 0 0 0 0"])
-def test_malformed_homography(graf_small, tmp_path, capsys, content):
-    a, b, _ = graf_small
+def test_malformed_homography(image_pair, tmp_path, capsys, content):
+    a, b = image_pair
     hp = tmp_path / "H_bad"
     hp.write_text(content)
     assert main(["match", str(a), str(b), "--gt", str(hp)]) == 2
     _one_line_error(capsys, "H_bad")
 
 
-def test_unknown_method(graf_small, capsys):
-    a, b, _ = graf_small
+def test_unknown_method(image_pair, capsys):
+    a, b = image_pair
     assert main(["match", str(a), str(b), "--method", "surf"]) == 2
     _one_line_error(capsys, "surf", "extra-affine")
 
 
-def test_pair_that_does_not_match_exits_zero_with_reason(graf_small, tmp_path, capsys):
-    a, _, _ = graf_small
+@pytest.mark.slow  # the matcher tries every escalation level before giving up
+def test_pair_that_does_not_match_exits_zero_with_reason(image_pair, tmp_path, capsys):
+    a, _ = image_pair
     flat = tmp_path / "flat.png"
     cv2.imwrite(str(flat), np.full((200, 300), 128, np.uint8))
     assert main(["match", str(a), str(flat)]) == 0

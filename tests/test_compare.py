@@ -10,19 +10,17 @@ import pytest
 
 from recon.eval.compare import GT_KEYS, compare_clouds, compare_scene, run_scenes
 
-SIZE = (640, 480)  # facade-extreme at this size: stock default registers 0/4, ours 4/4
+SIZE = (640, 480)  # facade-extreme at this size: ours registers 4/4 (stock default 0/4 with pycolmap 4.2.1)
 
 
-@pytest.fixture(scope="module")
-def facade(tmp_path_factory) -> Path:
-    from scenes.render import render_scene
-
-    d = tmp_path_factory.mktemp("fx") / "facade-extreme"
-    render_scene(d, "facade-extreme", seed=0, image_size=SIZE)
-    return d
+@pytest.fixture()
+def facade(facade_extreme_scene) -> Path:
+    """facade-extreme at SIZE, alone in its parent folder, rendered once per session (conftest)."""
+    return facade_extreme_scene
 
 
-def test_compare_stock_fails_ours_succeeds_via_cli(facade, tmp_path, capsys):
+@pytest.mark.slow
+def test_compare_via_cli_ours_registers_every_image_stock_recorded(facade, tmp_path, capsys):
     from recon.cli import main
 
     out = tmp_path / "cmp"
@@ -30,7 +28,10 @@ def test_compare_stock_fails_ours_succeeds_via_cli(facade, tmp_path, capsys):
     data = json.loads((out / "compare.json").read_text())
     stock, ours = data["stock"], data["extra_affine"]
     assert (out / "stock-default" / "report.json").is_file() and (out / "extra_affine" / "report.json").is_file()
-    assert stock["status"] == "no_model" and stock["registered_images"] == 0 and stock["message"]
+    # stock's outcome is recorded, not asserted (a newer COLMAP may register this scene)
+    stock_ok = stock["status"] == "ok"
+    assert stock["status"] in ("ok", "no_model") and stock_ok == (stock["registered_images"] > 0)
+    assert stock_ok or stock["message"]
     assert ours["status"] == "ok" and ours["registered_images"] == 4 == ours["num_images"]
     for key in ("num_images", "registered_images", "num_points3D", "mean_track_length", "mean_reprojection_error",
                 "seconds_total", "peak_mb", "stages", "verified_pairs", "inliers_per_pair_mean"):
@@ -40,13 +41,14 @@ def test_compare_stock_fails_ours_succeeds_via_cli(facade, tmp_path, capsys):
     assert data["gt"]["format"] == "colmap"
     for key in GT_KEYS:
         assert key in stock and key in ours, key
-    assert stock["auc_5"] == 0.0 and ours["auc_5"] > 0.5 and ours["rel_rot_err_deg_median"] < 2.0
-    assert data["clouds"]["status"] == "skipped" and "stock" in data["clouds"]["message"]
+    assert stock_ok or stock["auc_5"] == 0.0
+    assert ours["auc_5"] > 0.5 and ours["rel_rot_err_deg_median"] < 2.0
+    assert stock_ok or (data["clouds"]["status"] == "skipped" and "stock" in data["clouds"]["message"])
     text = capsys.readouterr().out
-    assert "extra_affine" in text and "stock-default" in text and "no_model" in text
+    assert "extra_affine" in text and "stock-default" in text and stock["status"] in text
     cols = _columns(out / "compare.rrd")  # the default sink: both runs in one recording
     assert "Points3D:positions" in cols["/world/extra_affine/points"]
-    assert not any(k.startswith("/world/stock-default/") for k in cols)  # stock found no model
+    assert any(k.startswith("/world/stock-default/") for k in cols) == stock_ok  # stock logged iff it has a model
     assert "TextDocument:text" in cols["/summary"]
     from recon.cli.view import resolve_recording
 
@@ -79,6 +81,7 @@ def _logged_centres(rrd: Path, prefix: str) -> dict[str, np.ndarray]:
     return out
 
 
+@pytest.mark.slow
 def test_compare_recording_aligns_every_model_to_the_ground_truth(facade, tmp_path):
     """--stock-preset high (which registers this scene) and ours, logged in the GT frame: each
     model's logged camera centres land on the GT centres."""
@@ -104,6 +107,7 @@ def test_compare_recording_aligns_every_model_to_the_ground_truth(facade, tmp_pa
         assert err < 0.02 * extent, (method, err, extent)
 
 
+@pytest.mark.slow
 def test_malformed_gt_warns_and_completes(facade, tmp_path):
     import shutil
 
@@ -119,7 +123,7 @@ def test_malformed_gt_warns_and_completes(facade, tmp_path):
     assert data["gt"] is None and any(str(bad) in w for w in data["warnings"])
     assert data["extra_affine"]["num_images"] == 4 and "num_points3D" in data["extra_affine"]
     assert "rel_rot_err_deg_median" not in data["extra_affine"]
-    assert res["stock"]["status"] == "no_model"
+    assert res["stock"]["status"] in ("ok", "no_model")  # recorded, whatever stock makes of this scene
 
 
 def _similarity(s: float, deg: float, t) -> tuple[float, np.ndarray, np.ndarray]:
@@ -157,6 +161,7 @@ def test_cloud_alignment_needs_three_common_images():
     assert c["status"] == "skipped" and "3 images" in c["message"]
 
 
+@pytest.mark.slow
 def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
     from recon.cli import main
 
@@ -177,6 +182,7 @@ def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
     assert "no such folder" in err and "bogus" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_run_scenes_unknown_scene(facade):
     from recon.errors import UserError
 

@@ -5,13 +5,17 @@ from __future__ import annotations
 import importlib.util
 import json
 
+import pytest
+
 from recon.cli import main
 from recon.eval.difficulty import step_deg
 
 
+@pytest.mark.slow
 def test_difficulty_sweep_rows_table_plot_and_reuse(tmp_path, capsys):
-    """One wide step (4 views over +-80 deg: 53 deg apart): stock default registers nothing, ours
-    all four; the rows carry the GT rotation error; a second call reuses the finished scene."""
+    """One wide step (4 views over +-80 deg: 53 deg apart): ours registers all four with a small
+    GT rotation error, stock's row is recorded whatever it registers (none with pycolmap 4.2.1);
+    a second call reuses the finished scene."""
     out = tmp_path / "d"
     args = ["bench", "difficulty", "--out", str(out), "--views", "4", "--max-azimuth", "80",
             "--stock-presets", "default", "--image-size", "640x480"]
@@ -20,7 +24,7 @@ def test_difficulty_sweep_rows_table_plot_and_reuse(tmp_path, capsys):
     rows = {r["method"]: r for r in data["rows"]}
     assert set(rows) == {"stock-default", "ours"}
     assert all(abs(r["step_deg"] - step_deg(4, 80.0)) < 0.01 for r in rows.values())
-    assert rows["stock-default"]["registered"] < 4
+    assert 0 <= rows["stock-default"]["registered"] <= rows["stock-default"]["images"] == 4  # recorded, not judged
     assert rows["ours"]["registered"] == rows["ours"]["images"] == 4
     assert rows["ours"]["rot_err_deg"] is not None and rows["ours"]["rot_err_deg"] < 1.0
     assert rows["ours"]["verified_pairs"] >= 3 and rows["ours"]["inliers_per_pair"] > 30

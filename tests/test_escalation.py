@@ -3,13 +3,13 @@ and the cheap building blocks (homography sanity check, vectorised ORB ratio tes
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from conftest import SHARED_DATA as DATA
 from matching.escalation import Attempt, hamming_ratio_match
 from matching.features import Features
 from matching.io import load_gray, read_homography
@@ -18,11 +18,8 @@ from matching.matching_utils import ratio_match
 from matching.store import FeatureStore
 from matching.verify import plausible_homography
 
-DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
-needs_evd = pytest.mark.skipif(not (DATA / "evd" / "h" / "shop.txt").is_file(),
-                               reason=f"EVD test data not found at {DATA} (set RECON_SHARED_DATA)")
-needs_graf = pytest.mark.skipif(not (DATA / "oxford" / "graf" / "H1to2p").is_file(),
-                                reason=f"Oxford graf test data not found at {DATA} (set RECON_SHARED_DATA)")
+needs_evd = pytest.mark.requires_shared("evd/1/shop.png", "evd/2/shop.png", "evd/h/shop.txt")
+needs_graf = pytest.mark.requires_shared("oxford/graf/img1.png", "oxford/graf/img2.png", "oxford/graf/H1to2p")
 
 
 def _match(path0: Path, path1: Path, **overrides):
@@ -46,6 +43,7 @@ def _correct(res, H: np.ndarray, thresh_px: float = 3**0.5) -> tuple[int, float]
     return int(ok.sum()), float(ok.mean())
 
 
+@pytest.mark.slow
 @needs_evd
 def test_evd_shop_is_solved_by_escalation():
     """EVD shop: the fast path's reference is the wrong image (too few verified inliers), the
@@ -57,6 +55,7 @@ def test_evd_shop_is_solved_by_escalation():
     assert n_ok >= 20 and precision >= 0.5, (n_ok, precision, res.escalation)
 
 
+@pytest.mark.slow
 @needs_graf
 def test_graf_1_2_stays_on_the_fast_path():
     g = DATA / "oxford" / "graf"

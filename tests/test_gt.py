@@ -265,10 +265,8 @@ def test_find_gt_strecha_unknown_image(tmp_path):
     assert sorted(find_gt(scene, check_names=False)) == sorted(poses)
 
 
-def test_real_fountain_gt(shared_data):
-    scene = shared_data / "scenes" / "fountain_P11"
-    if not (scene / "gt").is_dir():
-        pytest.skip(f"{scene}/gt not found")
+def test_real_fountain_gt(scene_dir):
+    scene = scene_dir("fountain_P11", "gt")
     gt = find_gt(scene)
     assert gt is not None and len(gt) == 11 and all(isinstance(c, GtCamera) for c in gt.values())
 

@@ -11,6 +11,8 @@ from matching.metrics import precision
 from matching.registry import get_matcher
 from matching.store import FeatureStore
 
+needs_graf = pytest.mark.requires_shared("oxford/graf/img1.png", "oxford/graf/img3.png", "oxford/graf/img4.png")
+
 
 def _store(shared_data, *names):
     store = FeatureStore()
@@ -19,6 +21,8 @@ def _store(shared_data, *names):
     return store
 
 
+@pytest.mark.slow
+@needs_graf
 def test_graf_1_4_precision_above_90_percent(shared_data):
     store = _store(shared_data, "img1", "img4")
     result = get_matcher("extra-affine").match(store, "img1", "img4")
@@ -32,6 +36,8 @@ def test_graf_1_4_precision_above_90_percent(shared_data):
     assert {"reference", "coarse", "fine", "total"} <= set(result.timings)
 
 
+@pytest.mark.slow
+@needs_graf
 def test_results_are_deterministic_and_views_are_reused(shared_data):
     store = _store(shared_data, "img1", "img3", "img4")
     m = ExtraAffineMatcher(MatcherConfig(seed=7))
@@ -46,6 +52,8 @@ def test_results_are_deterministic_and_views_are_reused(shared_data):
     assert r2.num_inliers > 100
 
 
+@pytest.mark.slow
+@needs_graf
 def test_swapped_inputs_give_the_same_geometry(shared_data):
     store = _store(shared_data, "img1", "img3")
     m = get_matcher("extra-affine")
@@ -55,6 +63,8 @@ def test_swapped_inputs_give_the_same_geometry(shared_data):
     assert precision(ba, np.linalg.inv(H)).precision >= 0.9
 
 
+@pytest.mark.slow
+@needs_graf
 def test_a_pair_that_does_not_match_returns_a_reason_not_an_error(shared_data):
     rng = np.random.default_rng(0)
     noise = (rng.random((480, 640)) * 255).astype(np.uint8)

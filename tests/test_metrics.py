@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from conftest import SHARED_DATA as DATA
 from matching.metrics import (
     DEFAULT_TH,
     gt_reference,
@@ -23,8 +22,7 @@ from matching.metrics import (
 )
 from matching.types import PairResult
 
-DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
-needs_data = pytest.mark.skipif(not (DATA / "oxford" / "graf").is_dir(), reason=f"shared test data not found at {DATA}")
+needs_data = pytest.mark.requires_shared("oxford/graf/img1.png")
 
 # Oxford graf H1to2p: a real, clearly projective homography
 H_GRAF = np.array([[8.7976964e-01, 3.1245438e-01, -3.9430589e01],

@@ -20,13 +20,11 @@ import numpy as np
 import pycolmap
 import pytest
 
+from conftest import SHARED_DATA as DATA
 from recon.cli import main
 from recon.core.pipeline import RunConfig, run_scene
 from scenes.render import render_scene
 
-DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
-needs_data = pytest.mark.skipif(not (DATA / "oxford" / "graf" / "img1.png").is_file(),
-                                reason=f"shared test data not found at {DATA}")
 REPO = Path(__file__).resolve().parents[1]
 SIZE = (480, 360)
 REPORT_KEYS = {"num_images", "registered_images", "num_points3D", "mean_track_length", "mean_reprojection_error",
@@ -55,16 +53,16 @@ def _run(scene: Path, out: Path, **kw):
     return rep, warnings
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    return make_scene(tmp_path_factory.mktemp("corner") / "scene")
+@pytest.fixture()
+def scene(corner_scene) -> Path:
+    """make_scene(...) with the defaults, rendered once per session (conftest): copy before changing."""
+    return corner_scene
 
 
-@pytest.fixture(scope="module")
-def first_run(scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("run") / "out"
-    rep, warnings = _run(scene, out)
-    return out, rep, warnings
+@pytest.fixture()
+def first_run(corner_sift_run):
+    """(out, report, warnings) of _run(scene, out), run once per session (conftest): copy out before changing."""
+    return corner_sift_run
 
 
 def _images(scene: Path) -> list[Path]:
@@ -73,7 +71,7 @@ def _images(scene: Path) -> list[Path]:
 
 
 # end to end -----------------------------------------------------------------------------------
-@needs_data
+@pytest.mark.slow
 def test_end_to_end_registers_every_image(first_run):
     out, rep, warnings = first_run
     assert rep.ok, rep.message
@@ -107,6 +105,7 @@ def test_end_to_end_registers_every_image(first_run):
     assert len(o3d.io.read_point_cloud(str(out / "points.ply")).points) == rep.num_points3D
 
 
+@pytest.mark.slow
 def test_extra_affine_reconstructs_the_wide_corner_close_to_ground_truth(tmp_path):
     """The default method on 4 views 29 deg apart with viewing angles to ~80 deg."""
     from recon.eval.evaluate import evaluate_model
@@ -126,7 +125,7 @@ def test_extra_affine_reconstructs_the_wide_corner_close_to_ground_truth(tmp_pat
     assert any(p["best_view"] and p["best_view"]["t"] > 1.0 for p in data["pairs"])  # tilted views used
 
 
-@needs_data
+@pytest.mark.slow
 def test_database_holds_merged_keypoints_with_colmap_offset(first_run):
     out, rep, _ = first_run
     db = pycolmap.Database.open(str(out / "database.db"))
@@ -141,7 +140,7 @@ def test_database_holds_merged_keypoints_with_colmap_offset(first_run):
         db.close()
 
 
-@needs_data
+@pytest.mark.slow
 def test_same_output_whatever_the_number_of_workers(scene, first_run, tmp_path):
     out1, rep1, _ = first_run
     seen_pairs, seen_models, seen_steps = [], [], []
@@ -178,7 +177,7 @@ def test_same_output_whatever_the_number_of_workers(scene, first_run, tmp_path):
 
 
 # resuming -------------------------------------------------------------------------------------
-@needs_data
+@pytest.mark.slow
 def test_resume_recomputes_only_missing_pairs(scene, first_run, tmp_path):
     out1, rep1, _ = first_run
     out = tmp_path / "out"
@@ -206,7 +205,7 @@ def test_resume_recomputes_only_missing_pairs(scene, first_run, tmp_path):
     assert fresh.pairs_computed == len(fresh.pairs) and not fresh.database_reused
 
 
-@needs_data
+@pytest.mark.slow
 def test_resume_after_killed_process(scene, tmp_path):
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
@@ -256,7 +255,6 @@ def test_cli_missing_folder(tmp_path, capsys):
     assert rc == 2 and len(_error_lines(err)) == 1 and "no such scene folder" in err
 
 
-@needs_data
 def test_cli_single_image(scene, tmp_path, capsys):
     d = tmp_path / "one"
     d.mkdir()
@@ -265,7 +263,7 @@ def test_cli_single_image(scene, tmp_path, capsys):
     assert rc == 2 and len(_error_lines(err)) == 1 and "at least 2 images" in err
 
 
-@needs_data
+@pytest.mark.slow
 def test_cli_junk_corrupt_and_duplicate_files_are_skipped(scene, tmp_path, capsys):
     d = tmp_path / "messy"
     d.mkdir()
@@ -288,7 +286,7 @@ def test_cli_junk_corrupt_and_duplicate_files_are_skipped(scene, tmp_path, capsy
     assert "registered images" in out  # the summary table
 
 
-@needs_data
+@pytest.mark.slow
 def test_cli_spaces_non_ascii_and_different_sizes(tmp_path, capsys):
     d = tmp_path / "scène avec espaces"
     make_scene(d, sizes=[SIZE, SIZE, (400, 300), SIZE, (560, 420)])
@@ -305,7 +303,6 @@ def test_cli_spaces_non_ascii_and_different_sizes(tmp_path, capsys):
     assert rc == 2 and len(_error_lines(err)) == 1 and "one size" in err
 
 
-@needs_data
 def test_cli_read_only_scene_asks_for_out(scene, tmp_path, capsys):
     d = tmp_path / "ro"
     shutil.copytree(scene, d)
@@ -318,7 +315,7 @@ def test_cli_read_only_scene_asks_for_out(scene, tmp_path, capsys):
         os.chmod(d, 0o755)
 
 
-@needs_data
+@pytest.mark.slow
 def test_cli_refuses_output_of_another_scene(scene, first_run, tmp_path, capsys):
     out1, _, _ = first_run
     other = tmp_path / "other"
@@ -345,6 +342,7 @@ def test_cli_refuses_output_of_another_scene(scene, first_run, tmp_path, capsys)
     assert rep["scene"] == str(other.resolve()) and rep["pairs_computed"] == 3
 
 
+@pytest.mark.slow
 def test_cli_no_model_keeps_database_and_report(tmp_path, capsys):
     d = tmp_path / "noise"
     d.mkdir()
@@ -392,8 +390,9 @@ def test_cli_unknown_method(tmp_path, capsys):
     assert rc == 2 and len(_error_lines(err)) == 1 and "surf" in err
 
 
-# one real scene (about 15 s on 2 cores, so not marked slow) -------------------------------------
-@pytest.mark.skipif(not (DATA / "scenes" / "fountain_P11" / "images").is_dir(), reason="fountain_P11 not found")
+# one real scene (about 15 s on 2 cores) ----------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.requires_shared("scenes/fountain_P11/images")
 def test_fountain_real_scene_reduced(tmp_path):
     rep, _ = _run(DATA / "scenes" / "fountain_P11", tmp_path / "out", max_size=640)
     assert rep.ok, rep.message

@@ -28,6 +28,7 @@ def _zoom_pair(img: np.ndarray, zoom: float) -> tuple[np.ndarray, np.ndarray]:
     return img, near
 
 
+@pytest.mark.requires_shared("oxford/graf/img1.png")
 @pytest.mark.parametrize("mode", ["robust", "paper"])
 def test_closer_camera_becomes_the_reference(shared_data, mode):
     img = cv2.imread(str(shared_data / "oxford" / "graf" / "img1.png"), cv2.IMREAD_GRAYSCALE)
@@ -42,6 +43,7 @@ def test_closer_camera_becomes_the_reference(shared_data, mode):
         assert d.scale_1_from_0 == pytest.approx(1.8, rel=0.05)
 
 
+@pytest.mark.requires_shared("oxford/graf/img1.png")
 def test_unrelated_images_leave_the_reference_undecided(shared_data):
     img = cv2.imread(str(shared_data / "oxford" / "graf" / "img1.png"), cv2.IMREAD_GRAYSCALE)
     noise = (np.random.default_rng(0).random(img.shape) * 255).astype(np.uint8)

@@ -21,6 +21,7 @@ def _digest(scene) -> str:
     return hashlib.sha1(b"".join(p.read_bytes() for p in scene.image_paths)).hexdigest()
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes_other_seed_other_images(tmp_path):
     a = render_scene(tmp_path / "a", "corner-wide", seed=3, image_size=SMALL)
     b = render_scene(tmp_path / "b", "corner-wide", seed=3, image_size=SMALL)
@@ -55,6 +56,7 @@ def test_texture_homography_agrees_with_projecting_the_3d_point():
     np.testing.assert_allclose(y[:2] / y[2], x[:2] / x[2], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_marked_world_point_is_drawn_where_the_ground_truth_projects_it(tmp_path):
     """Texture every plane with a photo that has one bright dot, then find the dot in the image."""
     tex = np.full((400, 400, 3), 60, np.uint8)
@@ -85,12 +87,12 @@ def test_extreme_presets_reach_grazing_viewing_angles(tmp_path):
         get_preset("nope")
 
 
-def test_procedural_texture_gives_sift_plenty_of_features(tmp_path):
-    scene = render_scene(tmp_path / "s", "corner", seed=0)
-    img = cv2.imread(str(scene.image_paths[0]), cv2.IMREAD_GRAYSCALE)
+def test_procedural_texture_gives_sift_plenty_of_features(corner_scene):
+    img = cv2.imread(str(corner_scene / "images" / "view_00.png"), cv2.IMREAD_GRAYSCALE)  # 480 x 360
     assert len(cv2.SIFT_create().detect(img, None)) >= 200
 
 
+@pytest.mark.slow
 def test_cli_renders_and_rejects_bad_input(tmp_path, capsys):
     out = tmp_path / "scene"
     assert main(["render-scene", str(out), "--preset", "corner-wide"]) == 0
@@ -137,6 +139,7 @@ def test_pixels_match_the_ground_truth_to_a_fraction_of_a_pixel(tmp_path):
     assert checked >= 8
 
 
+@pytest.mark.slow
 def test_overwrite_replaces_only_images_and_gt(tmp_path):
     out = tmp_path / "scene"
     out.mkdir()
@@ -151,6 +154,7 @@ def test_overwrite_replaces_only_images_and_gt(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no temporary folder left
 
 
+@pytest.mark.slow
 def test_an_interrupted_render_leaves_the_old_scene_and_no_temporary_folder(tmp_path, monkeypatch):
     import scenes.render as render
 

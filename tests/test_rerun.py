@@ -25,23 +25,28 @@ def _columns(rrd: Path) -> dict[str, set[str]]:
     return cols
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    from scenes.render import render_scene
-
-    root = tmp_path_factory.mktemp("rr") / "s"
-    render_scene(root, "corner-wide", seed=0, image_size=(480, 360))
-    return root
+@pytest.fixture()
+def scene(corner_wide_scene) -> Path:
+    """corner-wide at 480 x 360, rendered once per session (conftest)."""
+    return corner_wide_scene
 
 
 @pytest.fixture(scope="module")
-def runs(scene: Path) -> dict:
-    """Run once with --rerun none, once with the default sink (both fresh, so both build the
-    model and the second records the growth replay), then the second again (all reused)."""
-    out_none, out = scene.parent / "out-none", scene.parent / "out"
+def runs(corner_wide_cli_run, tmp_path_factory) -> dict:
+    """The session's fresh run with the default sink (it built the model, so it recorded the
+    growth replay; conftest), then two copies of its output run again: one without its
+    recording and with --rerun none, one with the default sink (all reused)."""
+    import shutil
+
+    scene = corner_wide_cli_run["scene"]
+    base = tmp_path_factory.mktemp("rr")
+    out_none, out = base / "out-none", base / "out"
+    shutil.copytree(corner_wide_cli_run["out"], out_none)
+    (out_none / "recording.rrd").unlink()
     rc_none = main(["run", str(scene), "--out", str(out_none), "--no-progress", "--rerun", "none"])
     rrds_after_none = sorted(p.name for p in out_none.rglob("*.rrd"))
-    rc_save = main(["run", str(scene), "--out", str(out), "--no-progress"])
+    rc_save = corner_wide_cli_run["rc"]
+    shutil.copytree(corner_wide_cli_run["out"], out)
     fresh = _columns(out / "recording.rrd")
     rc_reused = main(["run", str(scene), "--out", str(out), "--no-progress"])
     return {"out": out, "rc_none": rc_none, "rrds_after_none": rrds_after_none, "rc_save": rc_save,
@@ -49,11 +54,13 @@ def runs(scene: Path) -> dict:
             "report": json.loads((out / "report.json").read_text(encoding="utf-8"))}
 
 
+@pytest.mark.slow
 def test_rerun_none_writes_no_recording(runs):
     assert runs["rc_none"] == 0
     assert runs["rrds_after_none"] == []
 
 
+@pytest.mark.slow
 def test_run_recording_has_model_pairs_plots_and_summary(runs):
     assert runs["rc_save"] == 0
     out, report = runs["out"], runs["report"]
@@ -94,6 +101,7 @@ def test_run_recording_has_model_pairs_plots_and_summary(runs):
     np.testing.assert_allclose(t, img.cam_from_world().translation, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_growth_replay_and_plots(runs):
     """The fresh run records the model growing image by image; the reused run keeps the plots."""
     report = runs["report"]
@@ -119,6 +127,7 @@ def test_growth_replay_and_plots(runs):
         assert any(c.startswith("BarChart:") for c in reused[ent])
 
 
+@pytest.mark.slow
 def test_match_logs_one_pair_with_coarse_heatmap(scene, tmp_path):
     imgs = sorted((scene / "images").iterdir())[:2]
     rrd = tmp_path / "pair.rrd"
@@ -162,6 +171,7 @@ def test_sink_parsing_and_view_errors(tmp_path, monkeypatch, capsys):
     assert "Rerun viewer" in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_a_failing_sink_never_costs_the_reconstruction(scene, tmp_path, capsys):
     """The recording cannot be written (its folder is a file): one warning, logging stops, and
     the run still ends with its model and report."""

@@ -4,7 +4,6 @@ fountain_P11 at 640 px, a few seconds), evaluated against the scene's Strecha gr
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -12,14 +11,13 @@ import numpy as np
 import pycolmap
 import pytest
 
+from conftest import SHARED_DATA as DATA
 from recon.eval.evaluate import evaluate_model
 from recon.eval.gt import find_gt
 from recon.eval.stock import run_stock
 
-DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 FOUNTAIN = DATA / "scenes" / "fountain_P11"
-needs_fountain = pytest.mark.skipif(not (FOUNTAIN / "images" / "0000.jpg").is_file(),
-                                    reason=f"fountain_P11 not found under {DATA} (set RECON_SHARED_DATA)")
+needs_fountain = pytest.mark.requires_shared("scenes/fountain_P11/images/0000.jpg", "scenes/fountain_P11/gt/cameras")
 NAMES = ["0000.jpg", "0001.jpg", "0002.jpg", "0003.jpg"]
 REPORT_KEYS = {"status", "message", "num_images", "registered_images", "num_points3D", "mean_track_length",
                "mean_reprojection_error", "seconds_total", "peak_mb", "stages", "pairs", "skipped", "tracks",
@@ -36,6 +34,7 @@ def small_fountain(root: Path, names=NAMES) -> Path:
     return root
 
 
+@pytest.mark.slow
 @needs_fountain
 def test_stock_default_small_fountain(tmp_path):
     scene = small_fountain(tmp_path / "scene")
@@ -66,7 +65,9 @@ def test_stock_default_small_fountain(tmp_path):
     assert ev["center_err_rel_median"] < 0.05
 
 
+@pytest.mark.slow
 @needs_fountain
+@pytest.mark.requires_shared("oxford/graf/img1.png")
 def test_stock_pairs_file_and_no_model(tmp_path):
     """Explicit pairs go through COLMAP's imported pairs list (same pairs as recon run); a
     scene without any usable pair gives status no_model and never raises."""

@@ -1,0 +1,122 @@
+"""The run report (recon.core.report): report.json round trip, the console summary table, atomic writing."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+
+import numpy as np
+import pytest
+from rich.console import Console
+
+from recon.core.report import PairRow, RunReport, summary_table, write_report
+
+
+def _report(**kw) -> RunReport:
+    """A report as a finished run fills it (numbers as the pipeline produces them, numpy included)."""
+    rep = RunReport(scene="/data/scène 1", out="/data/scène 1/recon", num_images=4, num_models=1, model_sizes=[3],
+                    tracks={"merged": {"num_tracks": 120, "mean_length": 3.4, "consistent_mean_length": 3.1,
+                                       "inconsistent_share": 0.25},
+                            "unmerged": {"mean_length": 2.0}},
+                    merge={"num_keypoints": 900}, seconds_total=12.25, peak_mb=np.float64(812.4),
+                    stages={"load": 0.5, "match": np.float32(9.5), "sfm": 2.25},
+                    pairs_computed=2, pairs_cached=1, features_computed=4, features_reused=2,
+                    camera_mode_used="single", sfm_options={"init_min_tri_angle": 4.0},
+                    sfm_growth=[{"step": 0, "model": 0, "image": "b.png", "registered_images": 2, "num_points3D": 50}],
+                    pairs=[PairRow("a.png", "b.png", reference="a.png", best_view={"t": 2.0, "phi": 36.0, "s": 1.0},
+                                   raw_matches=np.int64(300), merged_matches=280, verified_inliers=250,
+                                   config="CALIBRATED", seconds=1.5),
+                           PairRow("a.png", "c.png", raw_matches=90, merged_matches=85, verified_inliers=60,
+                                   cached=True),
+                           PairRow("b.png", "c.png", reason="no match")],
+                    skipped=[{"name": "broken.JPG", "reason": "not a readable image"}],
+                    warnings=["broken.JPG: not a readable image"], config={"method": "extra-affine", "seed": 0})
+    rep.set_model({"registered_images": 3, "num_points3D": 450, "mean_track_length": 3.2,
+                   "mean_reprojection_error": 0.84}, ["a.png", "b.png", "c.png"])
+    for k, v in kw.items():
+        setattr(rep, k, v)
+    return rep
+
+
+def _from_json(data: dict) -> RunReport:
+    return RunReport(**{**data, "pairs": [PairRow(**p) for p in data["pairs"]]})
+
+
+def test_report_json_round_trip(tmp_path):
+    rep = _report()
+    path = tmp_path / "report.json"
+    write_report(rep, path)
+    data = json.loads(path.read_text(encoding="utf-8"))
+    assert set(data) == {f.name for f in fields(RunReport)}  # every field, always
+    assert data["scene"] == "/data/scène 1" and "scène" in path.read_text(encoding="utf-8")  # UTF-8, not \u escapes
+    assert data["stages"]["match"] == 9.5 and data["pairs"][0]["raw_matches"] == 300  # numpy -> JSON numbers
+    assert data["pairs"][0]["best_view"] == {"t": 2.0, "phi": 36.0, "s": 1.0}
+    assert _from_json(data) == rep  # nothing lost: the JSON rebuilds the same report
+    assert data == json.loads(json.dumps(rep.to_dict(), default=float))
+
+
+def test_non_finite_numbers_become_null(tmp_path):
+    path = tmp_path / "report.json"
+    write_report(_report(mean_reprojection_error=float("nan"), peak_mb=np.float32("inf")), path)
+    data = json.loads(path.read_text(encoding="utf-8"))  # strict JSON: no NaN / Infinity tokens
+    assert data["mean_reprojection_error"] is None and data["peak_mb"] is None
+    assert "NaN" not in path.read_text(encoding="utf-8")
+
+
+def test_atomic_write_replaces_the_report_and_leaves_no_temporary_file(tmp_path):
+    path = tmp_path / "report.json"
+    path.write_text("old", encoding="utf-8")
+    write_report(_report(), path)
+    assert [p.name for p in tmp_path.iterdir()] == ["report.json"]
+    assert json.loads(path.read_text(encoding="utf-8"))["registered_images"] == 3
+
+
+def test_a_failed_write_keeps_the_old_report(tmp_path):
+    class Unprintable:
+        def __str__(self) -> str:
+            raise RuntimeError("no text")
+
+    path = tmp_path / "report.json"
+    write_report(_report(), path)
+    before = path.read_bytes()
+    with pytest.raises(RuntimeError, match="no text"):
+        write_report(_report(config={"odd": Unprintable()}), path)
+    assert path.read_bytes() == before
+
+
+def _table_text(rep: RunReport) -> str:
+    console = Console(width=200, record=True, color_system=None)
+    console.print(summary_table(rep))
+    return console.export_text()
+
+
+def _row(text: str, label: str) -> str:
+    (line,) = [ln for ln in text.splitlines() if f" {label} " in ln]
+    return line
+
+
+def test_summary_table_shows_the_headline_numbers():
+    text = _table_text(_report())
+    assert "recon run: scène 1" in text
+    assert "ok" in _row(text, "status")
+    assert "4 / 1" in _row(text, "images (usable / skipped)")
+    assert "3 / 4" in _row(text, "registered images")
+    assert "450" in _row(text, "3D points")
+    assert "3.20" in _row(text, "mean track length (model)")
+    assert "3.10 / 2.00" in _row(text, "mean track length (graph, consistent tracks, merged / unmerged)")
+    assert "25 %" in _row(text, "observations in inconsistent graph tracks")
+    assert "0.840" in _row(text, "mean reprojection error (px)")
+    assert "2 / 1" in _row(text, "pairs (computed / cached)")
+    assert "2 / 3" in _row(text, "pairs verified")
+    assert "9.5" in _row(text, "match (s)") and "12.2" in _row(text, "total (s)")
+    assert "812" in _row(text, "peak memory (MB)")
+
+
+def test_summary_table_of_a_run_without_model():
+    rep = _report(status="no_model", message="no model", mean_reprojection_error=None, registered_images=0,
+                  tracks={"merged": {"mean_length": 2.0}, "unmerged": {"mean_length": 2.0}})
+    text = _table_text(rep)
+    assert "no_model" in _row(text, "status")
+    assert _row(text, "mean reprojection error (px)").split()[-2] == "-"
+    assert "inconsistent" not in text  # the share row only when some observations are inconsistent
+    assert "2.00 / 2.00" in text  # mean_length stands in when consistent_mean_length is absent

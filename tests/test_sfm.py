@@ -1,0 +1,167 @@
+"""Incremental SfM (recon.core.sfm) on databases that `pycolmap.synthesize_dataset` writes into
+tmp_path: no images at all and an exactly known truth (as pycolmap's own
+python/examples/custom_incremental_pipeline_test.py), so the mapper options, the growth hook,
+the choice of the largest model and the model writers are checked in well under a second each.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2  # noqa: F401  (before pycolmap, see tests/conftest.py)
+import numpy as np
+import pycolmap
+import pytest
+
+from recon.core.sfm import (GrowthStep, mapping_options, model_stats, options_summary, registered_names,
+                            run_incremental, write_model_atomic, write_points_ply)
+
+
+def synthesize(db_path: Path, num_frames: int = 6, num_points3D: int = 200, keypoint_noise_px: float = 0.0
+               ) -> pycolmap.Reconstruction:
+    """One camera, `num_frames` images seeing `num_points3D` points, every pair matched and
+    verified; with noise, the database's keypoints move by a Gaussian of that sigma (px).
+    Appends to an existing database (a second call gives a second, unconnected scene)."""
+    pycolmap.set_random_seed(0)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs = 1
+    o.num_cameras_per_rig = 1
+    o.num_frames_per_rig = num_frames
+    o.num_points3D = num_points3D
+    with pycolmap.Database.open(str(db_path)) as db:
+        gt = pycolmap.synthesize_dataset(o, db)
+        if keypoint_noise_px:
+            noise = pycolmap.SyntheticNoiseOptions()
+            noise.point2D_stddev = keypoint_noise_px
+            pycolmap.synthesize_noise(noise, gt, db)
+    return gt
+
+
+def pose_errors(rec: pycolmap.Reconstruction, gt: pycolmap.Reconstruction) -> tuple[float, float]:
+    """(max rotation error in degrees, max camera-centre error in GT units) after aligning `rec` to `gt`."""
+    cmp = pycolmap.compare_reconstructions(rec, gt, alignment_error="proj_center", max_proj_center_error=0.1)
+    assert cmp is not None, "the model could not be aligned to the synthetic truth"
+    errors = cmp["errors"]
+    assert len(errors) == gt.num_reg_images()
+    return max(e.rotation_error_deg for e in errors), max(e.proj_center_error for e in errors)
+
+
+def _map(db_path: Path, on_step=None):
+    return run_incremental(db_path, db_path.parent / "images", mapping_options(seed=0, num_threads=1), on_step)
+
+
+def test_noise_free_database_gives_the_synthetic_model(tmp_path):
+    db = tmp_path / "database.db"
+    gt = synthesize(db)
+    res = _map(db)
+    rec = res.reconstruction
+    assert res.num_models == 1 and res.model_sizes == [6] and res.hook_error is None
+    assert rec.num_reg_images() == 6 and rec.num_points3D() == 200
+    rot_deg, centre = pose_errors(rec, gt)
+    assert rot_deg < 1e-2 and centre < 1e-4
+    stats = model_stats(rec)
+    assert stats["registered_images"] == 6 and stats["mean_track_length"] == pytest.approx(6.0)
+    assert stats["mean_reprojection_error"] < 1e-3
+    assert registered_names(rec) == sorted(im.name for im in gt.images.values())
+
+
+def test_noisy_keypoints_still_give_every_image_and_small_errors(tmp_path):
+    db = tmp_path / "database.db"
+    gt = synthesize(db, keypoint_noise_px=0.5)
+    res = _map(db)
+    rec = res.reconstruction
+    assert rec.num_reg_images() == 6 and rec.num_points3D() >= 190
+    rot_deg, centre = pose_errors(rec, gt)
+    assert rot_deg < 0.1 and centre < 0.05
+    assert 0.2 < model_stats(rec)["mean_reprojection_error"] < 1.0  # the noise is seen, and absorbed
+
+
+def test_growth_steps_follow_the_live_model(tmp_path):
+    db = tmp_path / "database.db"
+    synthesize(db)
+    seen: list[tuple[GrowthStep, int, int]] = []
+    res = _map(db, on_step=lambda step, live: seen.append((step, live.num_reg_images(), live.num_points3D())))
+    steps = [s for s, _, _ in seen]
+    assert res.growth == [s.to_dict() for s in steps]
+    assert [s.step for s in steps] == list(range(5)) and all(s.model == 0 for s in steps)
+    assert [s.registered_images for s in steps] == [2, 3, 4, 5, 6]
+    assert all(s.registered_images == n_live and s.num_points3D == p_live for s, n_live, p_live in seen)
+    assert len(steps[0].images) == 2 and steps[0].image == steps[0].images[1]  # the initial pair
+    for prev, cur in zip(steps, steps[1:]):  # one new image per step, in registration order
+        assert cur.images[:-1] == prev.images and cur.image == cur.images[-1]
+    assert sorted(steps[-1].images) == registered_names(res.reconstruction)
+
+
+def test_a_failing_hook_is_reported_once_and_mapping_finishes(tmp_path):
+    db = tmp_path / "database.db"
+    synthesize(db)
+    calls = []
+
+    def broken(step, live):
+        calls.append(step.step)
+        raise RuntimeError("sink gone")
+
+    res = _map(db, on_step=broken)
+    assert calls == [0] and res.hook_error == "RuntimeError: sink gone"
+    assert res.reconstruction.num_reg_images() == 6 and len(res.growth) == 5
+
+
+def test_two_unconnected_scenes_give_two_models_largest_first(tmp_path):
+    db = tmp_path / "database.db"
+    big = synthesize(db, num_frames=5, num_points3D=100)
+    small = synthesize(db, num_frames=4, num_points3D=100)  # shares no match with the first
+    res = _map(db)
+    assert res.num_models == 2 and res.model_sizes == [5, 4]
+    assert res.reconstruction.num_reg_images() == 5
+    assert pose_errors(res.reconstruction, big)[0] < 1e-2
+    assert {g["model"] for g in res.growth} == {0, 1}
+    assert len(res.growth) == (5 - 1) + (4 - 1)  # an initial pair, then one step per image, per model
+    assert small.num_reg_images() == 4
+
+
+def test_mapping_options_scale_pixel_thresholds_and_seed_every_stage():
+    base = mapping_options(seed=5)
+    assert base.mapper.init_max_error == 4.0 and base.mapper.abs_pose_max_error == 12.0
+    for px_scale, factor in ((0.5, 1.0), (2.0, 2.0), (10.0, 3.0)):  # working-to-full-res factor, in [1, 3]
+        o = mapping_options(px_scale=px_scale)
+        assert o.mapper.init_max_error == pytest.approx(4.0 * factor)
+        assert o.mapper.abs_pose_max_error == pytest.approx(12.0 * factor)
+        assert o.mapper.filter_max_reproj_error == pytest.approx(4.0 * factor)
+        assert o.triangulation.merge_max_reproj_error == pytest.approx(4.0 * factor)
+        assert o.triangulation.complete_max_reproj_error == pytest.approx(4.0 * factor)
+    assert base.random_seed == base.mapper.random_seed == base.triangulation.random_seed == 5
+    assert base.min_model_size == 3 and base.multiple_models and not base.ba_refine_principal_point
+    summary = options_summary(mapping_options(px_scale=2.0))
+    assert summary["init_max_error"] == pytest.approx(8.0) and summary["init_min_tri_angle"] == 4.0
+    assert summary["min_num_matches"] == 15
+
+
+def test_write_model_atomic_replaces_the_model_and_leaves_no_temporary_folder(tmp_path):
+    db1, db2 = tmp_path / "a" / "database.db", tmp_path / "b" / "database.db"
+    db1.parent.mkdir()
+    db2.parent.mkdir()
+    synthesize(db1, num_frames=6)
+    synthesize(db2, num_frames=4, num_points3D=80)
+    model_dir = tmp_path / "out" / "sparse" / "0"
+    write_model_atomic(_map(db1).reconstruction, model_dir)
+    assert pycolmap.Reconstruction(str(model_dir)).num_reg_images() == 6
+    write_model_atomic(_map(db2).reconstruction, model_dir)  # replaces the first
+    again = pycolmap.Reconstruction(str(model_dir))
+    assert again.num_reg_images() == 4 and again.num_points3D() == 80
+    assert sorted(p.name for p in model_dir.parent.iterdir()) == ["0"]
+
+
+def test_point_cloud_and_stats_of_no_model(tmp_path):
+    db = tmp_path / "database.db"
+    synthesize(db)
+    rec = _map(db).reconstruction
+    ply = tmp_path / "points.ply"
+    assert write_points_ply(rec, ply) == rec.num_points3D() == 200
+    import open3d as o3d
+
+    xyz = np.asarray(o3d.io.read_point_cloud(str(ply)).points)
+    np.testing.assert_allclose(np.sort(xyz[:, 0]), np.sort([p.xyz[0] for p in rec.points3D.values()]), atol=1e-9)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["database.db", "points.ply"]
+    assert model_stats(None) == dict(registered_images=0, num_points3D=0, mean_track_length=0.0,
+                                     mean_reprojection_error=None, mean_observations_per_image=0.0)
+    assert registered_names(None) == []
