@@ -17,15 +17,17 @@ from typing import Any
 
 import pycolmap
 
+from recon.config import RunConfig
 from recon.core import sfm
 from recon.core.context import Run
 from recon.core.report import options_dict
 from recon.core.state import fingerprint
 
 
-def mapping_options(run: Run) -> pycolmap.IncrementalPipelineOptions:
-    """`recon.core.sfm.mapping_options` for this run: seeded, pixel thresholds scaled to full resolution."""
-    return sfm.mapping_options(run.cfg.seed, run.cfg.sfm.num_threads, run.px_scale())
+def mapping_options(cfg: RunConfig, px_scale: float) -> pycolmap.IncrementalPipelineOptions:
+    """`recon.core.sfm.mapping_options` for this run: seeded, pixel thresholds scaled by the
+    working-to-full-resolution factor `px_scale`."""
+    return sfm.mapping_options(cfg.seed, cfg.sfm.num_threads, px_scale)
 
 
 def read_model(model_dir: Path) -> pycolmap.Reconstruction | None:
@@ -48,7 +50,7 @@ class Sfm:
         return run.out / "sparse" / "0"
 
     def key(self, run: Run) -> str | None:
-        run.report.sfm_options = options_dict(mapping_options(run))
+        run.report.sfm_options = options_dict(mapping_options(run.cfg, run.px_scale()))
         return fingerprint("sfm", run.keys.get("verify"), run.report.sfm_options)
 
     def reuse(self, run: Run, record: dict[str, Any]) -> bool:
@@ -70,7 +72,7 @@ class Sfm:
             advance(2 if s.registered_images == 2 else 1)
             run.observer.on_sfm_step(s, live)
 
-        res = sfm.run_incremental(run.db_path, run.image_dir, mapping_options(run), on_step=step)
+        res = sfm.run_incremental(run.db_path, run.image_dir, mapping_options(run.cfg, run.px_scale()), on_step=step)
         advance(done=True)
         report, rec = run.report, res.reconstruction
         report.num_models, report.model_sizes, report.sfm_growth = res.num_models, res.model_sizes, res.growth

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
+from recon.config import RunConfig
 from recon.core.context import Run
 from recon.core.database import read_verified, two_view_options, verify
 from recon.core.report import PairRow, options_dict
@@ -27,12 +28,11 @@ from recon.core.state import fingerprint
 from recon.core.tracks import track_stats
 
 
-def verify_options(run: Run) -> pycolmap.TwoViewGeometryOptions:
+def verify_options(cfg: RunConfig, px_scale: float) -> pycolmap.TwoViewGeometryOptions:
     """Two-view options for raw wide-baseline matches (`recon.core.database.two_view_options`):
-    the threshold in working px scaled to full resolution (factor capped at 3), seeded."""
-    c = run.cfg.verify
-    return two_view_options(run.cfg.seed, max_error_px=c.max_error_px * min(max(run.px_scale(), 1.0), 3.0),
-                            min_num_inliers=c.min_num_inliers)
+    the threshold in working px scaled to full resolution (`px_scale`, capped at 3), seeded."""
+    return two_view_options(cfg.seed, max_error_px=cfg.verify.max_error_px * min(max(px_scale, 1.0), 3.0),
+                            min_num_inliers=cfg.verify.min_num_inliers)
 
 
 class Verify:
@@ -41,7 +41,7 @@ class Verify:
     makes = ("verified",)
 
     def key(self, run: Run) -> str | None:
-        options = options_dict(verify_options(run))
+        options = options_dict(verify_options(run.cfg, run.px_scale()))
         run.report.colmap_options["verification"] = options
         return fingerprint("verify", run.keys.get("database"), options)
 
@@ -62,7 +62,7 @@ class Verify:
         try:
             remove_db(tmp)
             shutil.copyfile(Database.path(run), tmp)
-            verify(tmp, verify_options(run), num_threads=run.cfg.num_workers)
+            verify(tmp, verify_options(run.cfg, run.px_scale()), num_threads=run.cfg.num_workers)
         except BaseException:
             remove_db(tmp)
             raise
