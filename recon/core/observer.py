@@ -5,7 +5,9 @@ method is optional: subclass `BaseRunObserver` and override what you need (the R
 `recon.viz.rerun_log.RerunLogger`, does so). Events arrive in this order, on the calling thread:
 
     on_stage_start(name) ... on_stage_end(name, seconds, reused)   for each stage in order,
-        with on_pair(...) inside the match stage (in pair order) and on_sfm_step(...) inside sfm;
+        with on_pair(...) inside the match stage, once per pair (cached pairs first, in pair
+        order, then computed ones as they finish; `index` is the pair's place in the pair list)
+        and on_sfm_step(...) inside sfm, one per registration step;
     on_warning(message) whenever a warning is raised (also in the report and the log);
     on_model(reconstruction_or_None, report) once, last, after report.json is written.
 

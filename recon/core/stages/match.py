@@ -18,6 +18,7 @@ Options: `match.method` and `match.matcher` (the matcher's own options, see `mak
 from __future__ import annotations
 
 import dataclasses
+import logging
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,8 @@ from recon.config import MatchConfig
 from recon.core.context import Run
 from recon.core.paircache import load_pair_result, pair_cache_key, result_to_full_res, save_pair_result
 from recon.errors import UserError
+
+log = logging.getLogger(__name__)
 
 
 def match_pair_task(store: FeatureStore, matcher: PairMatcher, name0: str, name1: str) -> PairResult:
@@ -103,6 +106,7 @@ class Match:
         cfg, pairs, store = run.cfg, run.data.pairs, run.data.store
         matcher = run.matcher or make_matcher(cfg.match, cfg.seed,
                                               inner_workers=1 if len(pairs) >= cfg.num_workers else 0)
+        log.debug("matcher: %s", matcher_identity(matcher))
         results, cached = self._match_all(run, matcher, run.cache / "pairs")
         run.data.results, run.data.cached = results, cached
         report = run.report
@@ -153,5 +157,7 @@ class Match:
                     # use exactly what a resumed run would load, so both give identical output
                     results[i] = load_pair_result(paths[i]) or full
                     advance()
+                    log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, results[i].num_matches,
+                              results[i].timings.get("total", 0.0), f" ({raw.reason})" if raw.reason else "")
                     run.observer.on_pair(i, a, b, results[i], False)
         return results, cached  # type: ignore[return-value]  (every slot is filled above)
