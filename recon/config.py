@@ -185,8 +185,8 @@ class SfmConfig:
     """The sfm stage: COLMAP's incremental mapping (see `recon.core.sfm` for its tuned options)."""
 
     num_threads: int = 1
-    """Threads of incremental mapping. One keeps the model reproducible bit for bit
-    (multi-threaded bundle adjustment sums in thread order); see docs/decisions.md."""
+    """Threads of incremental mapping (-1 = all cores). One keeps the model reproducible bit for
+    bit: multi-threaded bundle adjustment sums in thread order (`recon.core.sfm.MAPPING_THREADS`)."""
 
     def __post_init__(self) -> None:
         if self.num_threads == 0 or self.num_threads < -1:

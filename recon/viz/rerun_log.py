@@ -55,9 +55,8 @@ from recon.core.observer import BaseRunObserver
 RECORDING_NAME = "recording.rrd"
 SINK_KINDS = ("save", "spawn", "connect", "none")
 THUMB_PX = 320  # longest side of the camera images in the 3D view
-# Longest side of each image in a pair's side-by-side match picture, and JPEG quality: a
-# 30-image scene (435 pairs) recorded 91 MB at 640 px / 85 (pictures full of match lines
-# compress poorly), so 512 px / 80.
+# Longest side of each image in a pair's side-by-side match picture, and JPEG quality: the
+# recording's size is mostly these pictures (measured in docs/decisions.md, "Rerun recordings").
 PAIR_PX = 512
 JPEG_QUALITY = 80
 GROWTH_POINTS = 20000  # points per step of the growth replay (keeps a 30-image recording small)
@@ -127,7 +126,7 @@ def _resize_longest(img: NDArray[np.uint8], px: int) -> tuple[NDArray[np.uint8],
 
 def _png(img_rgb: NDArray[np.uint8]) -> bytes:
     """PNG of an RGB picture: lossless, and tiny for flat-colour plots such as the coarse heat map
-    (raw RGB cost 108 KB per pair, 47 MB of a 30-image recording)."""
+    (raw RGB images cost far more: docs/decisions.md, "Rerun recordings")."""
     ok, buf = cv2.imencode(".png", cv2.cvtColor(img_rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError("PNG encoding failed")
