@@ -227,13 +227,13 @@ class RunConfig:
         return _plain(dataclasses.asdict(self))
 
     @staticmethod
-    def from_dict(data: dict[str, Any]) -> "RunConfig":
+    def from_dict(data: dict[str, Any]) -> RunConfig:
         """From nested data (`to_dict()`'s shape; a top-level `matcher` table is `match.matcher`).
         Values may be strings (parsed by the field's type); unknown keys raise UserError."""
         return _build(RunConfig, _normalise(data), "")
 
     @staticmethod
-    def from_options(**options: Any) -> "RunConfig":
+    def from_options(**options: Any) -> RunConfig:
         """From `recon run`'s flag names (`out`, `method`, `pairs`, `max_size`, ...) and dotted
         keys (`"tracks.merge_px"`, `"matcher.fine_top_k"` via `**{...}`), over the defaults."""
         return RunConfig.from_dict(_nest({_flag_paths().get(k, k): v for k, v in options.items()}))
@@ -308,7 +308,7 @@ def field_docs(cls: type) -> dict[str, str]:
     tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     body = tree.body[0].body  # type: ignore[attr-defined]
     docs = {}
-    for node, nxt in zip(body, body[1:]):
+    for node, nxt in zip(body, body[1:], strict=False):
         if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(nxt, ast.Expr) \
                 and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str):
             docs[node.target.id] = inspect.cleandoc(nxt.value.value)
@@ -333,7 +333,7 @@ def run_options() -> list[OptionSpec]:
     for path, f, owner in _leaves(RunConfig):
         flag = f.metadata.get("flag")
         if flag:
-            default = f.default_factory() if f.default is dataclasses.MISSING else f.default  # type: ignore[misc]
+            default = f.default_factory() if f.default is dataclasses.MISSING else f.default  # type: ignore[misc,operator]
             out.append(OptionSpec(path, flag.split("/")[0].lstrip("-").replace("-", "_"), flag,
                                   typing.get_type_hints(owner)[f.name], default,
                                   " ".join(field_docs(owner).get(f.name, "").split())))
@@ -523,7 +523,7 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
     kw = {}
     for name, value in data.items():
         t = hints[name]
-        if dataclasses.is_dataclass(t):
+        if isinstance(t, type) and dataclasses.is_dataclass(t):
             kw[name] = _build(t, value, f"{prefix}{name}.")
         elif name == "matcher" and cls is MatchConfig:
             kw[name] = _flatten(value or {})

@@ -24,7 +24,7 @@ class Progress:
             self._p = RichProgress(SpinnerColumn(), TextColumn("{task.description:<10}"), BarColumn(),
                                    MofNCompleteColumn(), TimeElapsedColumn(), console=console(), transient=False)
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> Progress:
         if self._p is not None:
             self._p.__enter__()
         return self

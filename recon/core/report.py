@@ -9,8 +9,10 @@
   (`merged`: `num_tracks`, `mean_length`, `max_length`, `inconsistent` tracks holding two
   keypoints of one image, `inconsistent_share` of the observations, and
   `consistent_mean_length`, the figure the console shows; see `recon.core.tracks.track_stats`) and
-  without (`unmerged`: every pair keeps its own keypoints, so every track has length exactly 2). `mean_track_length` above is the model's (after SfM with merging). A
-  reconstruction without merging can be measured with `--merge-px 0` (see `recon.core.tracks`);
+  without (`unmerged`: every pair keeps its own keypoints, so every track has length exactly 2).
+  `mean_track_length` above is the model's (after SfM with merging). A reconstruction without
+  merging can be measured with `--merge-px 0` (see `recon.core.tracks`); the stock comparison's
+  `tracks` has one entry, `graph` (its keypoints are per image already);
 * `seconds_total`, `peak_mb` (peak resident memory during the run, sampled) and `peak_growth_mb`
   (its growth over the memory before the run), `stages` (seconds per stage, in order) and
   `stages_reused` (stages skipped because an earlier run built their outputs from the same key);

@@ -224,7 +224,7 @@ class StockMatch(_Always):
         nk, raw = _read_db_counts(run.db_path, ids, pairs)
         run.data.num_keypoints = nk
         rows, inliers = [], []
-        for (a, b), n_raw in zip(pairs, raw):
+        for (a, b), n_raw in zip(pairs, raw, strict=True):
             ia, ib = ids[a], ids[b]
             n_in, conf, inl = run.data.verified.get((min(ia, ib), max(ia, ib)), (0, "", np.zeros((0, 2), np.uint32)))
             if ia > ib:

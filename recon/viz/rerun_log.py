@@ -1,7 +1,8 @@
 """Logging a run (or one pair) to Rerun: the 3D model, per-pair diagnostics, plots and a summary.
 
-`RerunLogger` is a `recon.core.observer.RunObserver` (`run_scene(..., observer=logger)`): it
-logs pairs, SfM steps and the final model as the run emits them, and never touches the pipeline. Entity layout of a recording:
+`RerunLogger` is a `recon.core.observer.RunObserver` (`run_scene(..., observer=logger)`):
+it logs pairs, SfM steps and the final model as the run emits them, and never touches the
+pipeline. Entity layout of a recording:
 
 * `world/cameras/<image>`: `Transform3D` (COLMAP's `cam_from_world`, logged as
   ChildFromParent), its `image` child: `Pinhole` (intrinsics scaled to the thumbnail) and

@@ -21,7 +21,7 @@ import dataclasses
 import logging
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from matching.registry import PairMatcher, get_matcher
 from matching.store import FeatureStore
@@ -155,9 +155,9 @@ class Match:
                     full = result_to_full_res(raw, images[a], images[b])
                     save_pair_result(paths[i], full)
                     # use exactly what a resumed run would load, so both give identical output
-                    results[i] = load_pair_result(paths[i]) or full
+                    r = results[i] = load_pair_result(paths[i]) or full
                     advance()
-                    log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, results[i].num_matches,
-                              results[i].timings.get("total", 0.0), f" ({raw.reason})" if raw.reason else "")
-                    run.observer.on_pair(i, a, b, results[i], False)
-        return results, cached  # type: ignore[return-value]  (every slot is filled above)
+                    log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
+                              r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
+                    run.observer.on_pair(i, a, b, r, False)
+        return cast(list[PairResult], results), cached  # every slot is filled above

@@ -33,7 +33,7 @@ class Tracks:
         scene, data = run.data.scene, run.data
         radius = {im.name: merge_px / min(im.scale_xy) for im in scene.images}
         merged = merge_tracks([PairMatches(a, b, r.kpts0, r.kpts1, r.matches, r.distances)
-                               for (a, b), r in zip(data.pairs, data.results)], radius)
+                               for (a, b), r in zip(data.pairs, data.results, strict=True)], radius)
         data.merged = merged
         data.keypoints = {n: merged.keypoints.get(n, np.zeros((0, 2), np.float32)) for n in scene.names}
         run.report.merge = {**merged.stats.to_dict(), "merge_px": merge_px}

@@ -77,7 +77,7 @@ class Verify:
         """The report's pair rows and the track statistics of the verified graph."""
         d, ids = run.data, run.data.image_ids
         rows, inliers = [], []
-        for (a, b), r, mm, cached in zip(d.pairs, d.results, d.merged.matches, d.cached):
+        for (a, b), r, mm, cached in zip(d.pairs, d.results, d.merged.matches, d.cached, strict=True):
             ia, ib = ids.get(a), ids.get(b)
             n_in, conf, inl = 0, "", np.zeros((0, 2), np.uint32)
             if ia is not None and ib is not None:
