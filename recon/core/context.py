@@ -102,6 +102,8 @@ class Run:
         return self._executor
 
     def close_executor(self, cancel: bool) -> None:
+        """Shut the executor down: waiting for its tasks, or not (`cancel`: after an error or
+        Ctrl-C; the match stage has cancelled what had not started)."""
         ex, self._executor = self._executor, None
         if ex is not None:
-            ex.shutdown(wait=not cancel, cancel_futures=cancel)
+            ex.shutdown(wait=not cancel)  # only the plain Executor API: any engine's executor fits

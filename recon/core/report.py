@@ -182,7 +182,7 @@ def summary_table(report: RunReport):
     verified = sum(1 for p in report.pairs if p.verified_inliers > 0)
     t.add_row("pairs verified", f"{verified} / {len(report.pairs)}")
     for k, v in report.stages.items():
-        t.add_row(f"  {k} (s)", f"{v:.1f}")
+        t.add_row(f"  {k} (s)", f"{v:.1f}" + (" (reused)" if k in report.stages_reused else ""))
     t.add_row("total (s)", f"{report.seconds_total:.1f}")
     t.add_row("peak memory (MB)", f"{report.peak_mb:.0f}")
     t.add_row("output", report.out)

@@ -139,25 +139,30 @@ class Match:
             futures: dict[Future, int] = {run.executor.submit(match_pair_task, store, matcher, *pairs[i]): i
                                           for i in todo}
             pending = set(futures)
-            while pending:
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for f in sorted(done, key=lambda f: futures[f]):
-                    i = futures[f]
-                    a, b = pairs[i]
-                    try:
-                        raw = f.result()
-                    except Exception as e:  # one bad pair must not end the run
-                        run.warn(f"matching {a} / {b} failed: {type(e).__name__}: {e}")
-                        results[i] = PairResult.empty(getattr(matcher, "name", "?"),
-                                                      f"matcher error: {type(e).__name__}: {e}")
+            try:
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for f in sorted(done, key=lambda f: futures[f]):
+                        i = futures[f]
+                        a, b = pairs[i]
+                        try:
+                            raw = f.result()
+                        except Exception as e:  # one bad pair must not end the run
+                            run.warn(f"matching {a} / {b} failed: {type(e).__name__}: {e}")
+                            results[i] = PairResult.empty(getattr(matcher, "name", "?"),
+                                                          f"matcher error: {type(e).__name__}: {e}")
+                            advance()
+                            continue
+                        full = result_to_full_res(raw, images[a], images[b])
+                        save_pair_result(paths[i], full)
+                        # use exactly what a resumed run would load, so both give identical output
+                        r = results[i] = load_pair_result(paths[i]) or full
                         advance()
-                        continue
-                    full = result_to_full_res(raw, images[a], images[b])
-                    save_pair_result(paths[i], full)
-                    # use exactly what a resumed run would load, so both give identical output
-                    r = results[i] = load_pair_result(paths[i]) or full
-                    advance()
-                    log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
-                              r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
-                    run.observer.on_pair(i, a, b, r, False)
+                        log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
+                                  r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
+                        run.observer.on_pair(i, a, b, r, False)
+            except BaseException:  # Ctrl-C, a failing cache write: drop the tasks not started yet
+                for f in pending:
+                    f.cancel()
+                raise
         return cast(list[PairResult], results), cached  # every slot is filled above
