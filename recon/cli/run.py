@@ -59,12 +59,13 @@ def _signature() -> inspect.Signature:
 
 def build_config(ctx: typer.Context, kw: dict[str, Any]) -> Any:
     """The RunConfig of this command line: preset < --config < flags given < --set."""
-    from typer._click.core import ParameterSource
-
     from recon.config import build_run_config
 
-    given = {o.path: kw[o.name] for o in run_options()
-             if ctx.get_parameter_source(o.name) not in (ParameterSource.DEFAULT, None)}
+    def given_on_command_line(name: str) -> bool:  # by name: click's enum or typer's vendored copy
+        source = ctx.get_parameter_source(name)
+        return source is not None and source.name != "DEFAULT"
+
+    given = {o.path: kw[o.name] for o in run_options() if given_on_command_line(o.name)}
     return build_run_config(kw["preset"], kw["config"], given, kw["set_"])
 
 
