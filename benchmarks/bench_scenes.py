@@ -1,6 +1,6 @@
 """Scene benchmark: `recon run` (extra-affine) vs COLMAP's stock SIFT pipeline, same images.
 
-    python benchmarks/bench_scenes.py [SCENES_ROOT] [--scenes a,b] [--max-size 1600]
+    python benchmarks/bench_scenes.py [SCENES_ROOT] [--scenes a,b] [--max-size PX]
         [--json benchmarks/results/scenes.json] [--stock-presets default[,high]]
         [--out out/bench] [--pairs exhaustive] [--seed 0]
 
@@ -36,6 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a plain script from anywhere
     sys.path.insert(0, str(REPO))
 
+from recon.config import DEFAULT_MAX_SIZE  # noqa: E402
 from recon.errors import UserError  # noqa: E402
 from recon.eval.compare import OURS, discover_scenes, run_scenes, scenes_table  # noqa: E402,F401
 from recon.eval.stock import PRESETS  # noqa: E402
@@ -58,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("root", nargs="?", type=Path, default=None,
                     help="folder of scene folders (default: ../shared/data/scenes)")
     ap.add_argument("--scenes", default="", help="comma-separated scene names (default: all)")
-    ap.add_argument("--max-size", type=int, default=1600, help="working resolution, longer side px (0 = full)")
+    ap.add_argument("--max-size", type=int, default=DEFAULT_MAX_SIZE, help="working resolution, longer side px (0 = full)")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "scenes.json")
     ap.add_argument("--stock-presets", default="default", help=f"comma-separated, of {', '.join(PRESETS)}")
     ap.add_argument("--out", type=Path, default=REPO / "out" / "bench",

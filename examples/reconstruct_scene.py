@@ -18,7 +18,7 @@ def main() -> None:
     out = Path(sys.argv[1] if len(sys.argv) > 1 else "out/example")
     scene = render_scene(out / "scene", preset="corner", seed=0, overwrite=True)
     print(f"rendered {len(scene.image_paths)} images into {scene.out_dir}")
-    report = run_scene(scene.out_dir, RunConfig(out=out / "recon", overwrite=True))
+    report = run_scene(scene.out_dir, RunConfig.from_options(out=out / "recon", overwrite=True))
     print(f"registered {report.registered_images}/{report.num_images} images, "
           f"{report.num_points3D} points, mean track length {report.mean_track_length:.2f}")
 

@@ -22,6 +22,7 @@ import pytest
 
 from conftest import SHARED_DATA as DATA
 from recon.cli import main
+from recon.core.observer import BaseRunObserver
 from recon.core.pipeline import RunConfig, run_scene
 from scenes.render import render_scene
 
@@ -44,13 +45,21 @@ def make_scene(out_dir: Path, preset: str = "corner", sizes: list[tuple[int, int
 
 
 def _cfg(out: Path, **kw) -> RunConfig:
-    return RunConfig(out=out, method="sift", progress=False, **kw)
+    return RunConfig.from_options(out=out, method="sift", progress=False, **kw)
+
+
+class Warnings(BaseRunObserver):
+    def __init__(self) -> None:
+        self.messages: list[str] = []
+
+    def on_warning(self, message: str) -> None:
+        self.messages.append(message)
 
 
 def _run(scene: Path, out: Path, **kw):
-    warnings: list[str] = []
-    rep = run_scene(scene, _cfg(out, **kw), on_warning=warnings.append)
-    return rep, warnings
+    warnings = Warnings()
+    rep = run_scene(scene, _cfg(out, **kw), observer=warnings)
+    return rep, warnings.messages
 
 
 @pytest.fixture()
@@ -113,7 +122,7 @@ def test_extra_affine_reconstructs_the_wide_corner_close_to_ground_truth(tmp_pat
 
     scene = make_scene(tmp_path / "wide", preset="corner-wide")
     out = tmp_path / "out"
-    rep = run_scene(scene, RunConfig(out=out, progress=False))  # method: extra-affine
+    rep = run_scene(scene, RunConfig.from_options(out=out, progress=False))  # method: extra-affine
     assert rep.ok and rep.registered_images == rep.num_images == 4
     rec = pycolmap.Reconstruction()
     rec.read(str(out / "sparse" / "0"))
@@ -145,14 +154,18 @@ def test_same_output_whatever_the_number_of_workers(scene, first_run, tmp_path):
     out1, rep1, _ = first_run
     seen_pairs, seen_models, seen_steps = [], [], []
 
-    def broken_step_hook(step, live):  # a live logger that dies after the first step
-        seen_steps.append((step.step, live.num_reg_images()))
-        raise RuntimeError("sink gone")
+    class Hooks(BaseRunObserver):
+        def on_pair(self, i, a, b, r, cached):
+            seen_pairs.append((i, a, b, r.num_matches, cached))
 
-    rep2 = run_scene(scene, _cfg(tmp_path / "out", workers=1),
-                     on_pair=lambda i, a, b, r, cached: seen_pairs.append((i, a, b, r.num_matches, cached)),
-                     on_model=lambda rec, rep: seen_models.append((rec.num_reg_images(), rep.status)),
-                     on_sfm_step=broken_step_hook)
+        def on_model(self, rec, rep):
+            seen_models.append((rec.num_reg_images(), rep.status))
+
+        def on_sfm_step(self, step, live):  # a live logger that dies after the first step
+            seen_steps.append((step.step, live.num_reg_images()))
+            raise RuntimeError("sink gone")
+
+    rep2 = run_scene(scene, _cfg(tmp_path / "out", workers=1), observer=Hooks())
     # the SfM hook saw the initial pair, failed, was switched off, and mapping went on
     assert seen_steps == [(0, 2)]
     assert any("sink gone" in w for w in rep2.warnings)

@@ -39,14 +39,14 @@ def small_fountain(root: Path, names=NAMES) -> Path:
 def test_stock_default_small_fountain(tmp_path):
     scene = small_fountain(tmp_path / "scene")
     out = tmp_path / "out"
-    r = run_stock(scene, out, max_size=640, seed=0)
+    r = run_stock(scene, out, max_size=640, seed=0).to_dict()
     assert r["status"] == "ok", r["message"]
     assert REPORT_KEYS <= set(r)
     assert r["registered_images"] >= 3 and r["num_points3D"] > 100
     assert r["mean_track_length"] > 2.0 and r["mean_reprojection_error"] < 2.0
     assert len(r["pairs"]) == 6 and r["verified_pairs"] >= 3 and r["inliers_per_pair_mean"] > 50
-    assert set(r["stages"]) >= {"load", "database", "extract", "match", "sfm"}
-    assert r["peak_mb"] > 0 and r["colmap_options"]["max_image_size"] == 640
+    assert set(r["stages"]) >= {"load", "database", "features", "match", "sfm"}
+    assert r["peak_mb"] > 0 and r["colmap_options"]["extraction"]["max_image_size"] == 640
     # outputs, and report.json holds the same dict
     assert (out / "database.db").is_file() and (out / "sparse" / "0").is_dir()
     assert json.loads((out / "report.json").read_text())["registered_images"] == r["registered_images"]
@@ -75,7 +75,7 @@ def test_stock_pairs_file_and_no_model(tmp_path):
     pairs = tmp_path / "pairs.txt"
     pairs.write_text("0000.jpg 0001.jpg\n# comment\n0001.jpg 0002.jpg\nmissing.jpg 0000.jpg\n")
     out = tmp_path / "out"
-    r = run_stock(scene, out, pairs=str(pairs), max_size=480)
+    r = run_stock(scene, out, pairs=str(pairs), max_size=480).to_dict()
     assert [(p["image0"], p["image1"]) for p in r["pairs"]] == [("0000.jpg", "0001.jpg"), ("0001.jpg", "0002.jpg")]
     assert any("missing.jpg" in w for w in r["warnings"])
     assert (out / "pairs.txt").read_text().split("\n")[:2] == ["0000.jpg 0001.jpg", "0001.jpg 0002.jpg"]
@@ -89,23 +89,26 @@ def test_stock_pairs_file_and_no_model(tmp_path):
     if not graf.is_file():
         pytest.skip("oxford/graf not found")
     (other / "b.png").symlink_to(graf)
-    r2 = run_stock(other.parent, tmp_path / "out2", max_size=480)
+    r2 = run_stock(other.parent, tmp_path / "out2", max_size=480).to_dict()
     assert r2["status"] == "no_model" and r2["registered_images"] == 0 and r2["message"]
     assert (tmp_path / "out2" / "report.json").is_file() and not (tmp_path / "out2" / "sparse").exists()
 
 
 def test_stock_bad_arguments(tmp_path):
-    with pytest.raises(ValueError, match="preset"):
-        run_stock(tmp_path, tmp_path / "o", preset="ultra")  # type: ignore[arg-type]
+    """The same error contract as `recon run`: unusable input raises a user error (one line in
+    the CLI), a scene without a model returns a report (see test_stock_pairs_file_and_no_model)."""
     from matching.errors import InputError
+    from recon.errors import UserError
 
+    with pytest.raises(UserError, match="preset"):
+        run_stock(tmp_path, tmp_path / "o", preset="ultra")  # type: ignore[arg-type]
     with pytest.raises(InputError):
         run_stock(tmp_path / "nope", tmp_path / "o")
-    # a folder with one image: a report, not an exception
+    # a folder with one image: a user error, as for recon run
     (tmp_path / "one").mkdir()
     img = np.full((100, 120), 128, np.uint8)
     import cv2
 
     cv2.imwrite(str(tmp_path / "one" / "a.png"), img)
-    r = run_stock(tmp_path / "one", tmp_path / "o")
-    assert r["status"] == "no_model" and "at least 2" in r["message"]
+    with pytest.raises(UserError, match="at least 2"):
+        run_stock(tmp_path / "one", tmp_path / "o")

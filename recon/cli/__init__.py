@@ -8,6 +8,7 @@ traceback; Ctrl-C exits 130 after whatever was written has been left consistent.
 from __future__ import annotations
 
 import sys
+from typing import Annotated
 
 import typer
 
@@ -21,6 +22,15 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+
+@app.callback()
+def _global_options(verbose: Annotated[bool, typer.Option(
+        "-v", "--verbose", help="Debug logs and COLMAP's own log on stderr.")] = False) -> None:
+    """Options before the command name (`recon -v run ...`): logging, set up once per command."""
+    from recon.log import setup_logging
+
+    setup_logging(verbose)
 
 
 _registered = False

@@ -9,6 +9,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from recon.config import DEFAULT_MAX_SIZE
+
 bench_app = typer.Typer(name="bench", help="Benchmarks against ground truth.", no_args_is_help=True,
                         add_completion=False, pretty_exceptions_enable=False)
 
@@ -89,7 +91,7 @@ def scenes_cmd(
     out: Annotated[Optional[Path], typer.Option("--out", help="Outputs: OUT/<scene>/{stock-*,extra_affine} "
                                                               "(default: out/bench-scenes).")] = None,
     max_size: Annotated[int, typer.Option("--max-size", help="Working resolution (longer side, px; 0 = full).")]
-        = 1600,
+        = DEFAULT_MAX_SIZE,
     pairs: Annotated[str, typer.Option("--pairs", help="Pair selection for both pipelines.")] = "exhaustive",
     seed: Annotated[int, typer.Option("--seed")] = 0,
 ) -> None:

@@ -8,6 +8,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from recon.config import DEFAULT_MAX_SIZE
+
 
 def register(app: typer.Typer) -> None:
     @app.command("compare")
@@ -20,7 +22,7 @@ def register(app: typer.Typer) -> None:
         stock_preset: Annotated[str, typer.Option(
             "--stock-preset", help="Stock COLMAP preset: default or high (comma-separated for several).")] = "default",
         max_size: Annotated[int, typer.Option("--max-size", help="Working resolution of both pipelines "
-                                                                 "(longer side, px; 0 = full).")] = 1600,
+                                                                 "(longer side, px; 0 = full).")] = DEFAULT_MAX_SIZE,
         pairs: Annotated[str, typer.Option("--pairs", help="exhaustive, sequential:K, or a file of name pairs.")]
             = "exhaustive",
         seed: Annotated[int, typer.Option("--seed", help="Seed for the matcher and COLMAP's RANSAC.")] = 0,

@@ -1,84 +1,127 @@
-"""`recon run SCENE_DIR`: photos to a COLMAP sparse model (see `recon.core.pipeline`)."""
+"""`recon run SCENE_DIR`: photos to a COLMAP sparse model (see `recon.core.pipeline`).
+
+The options are generated from `recon.config.RunConfig` (every field with a `flag`, its
+attribute docstring as the help, its default as the default), so they cannot drift from the
+library. On top of them: `--preset NAME`, `--config FILE`, `--set KEY=VALUE` (any option, and
+the matcher's own as `matcher.KEY`) and `--rerun SINK`. Precedence: preset < config file <
+flags given on the command line < --set.
+"""
 
 from __future__ import annotations
 
+import inspect
+import typing
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 
-from matching.registry import METHODS
+from recon.config import PRESETS, run_options
+
+CLI_TYPES = {bool, int, float, str, Path}
+
+
+def _cli_type(t: Any) -> Any:
+    """The type typer parses: Literal choices and other types as str (checked by the config,
+    which raises UserError: one line, exit 2), `X | None` as Optional[X]."""
+    args = [a for a in typing.get_args(t) if a is not type(None)]
+    if args and len(args) < len(typing.get_args(t)):
+        return Optional[_cli_type(args[0])]  # noqa: UP045 (typer needs typing.Optional here)
+    return t if t in CLI_TYPES else str
+
+
+def _signature() -> inspect.Signature:
+    """run()'s parameters: the scene folder, the generated config options, then the CLI's own."""
+    P = inspect.Parameter
+    params = [
+        P("ctx", P.KEYWORD_ONLY, annotation=typer.Context),
+        P("scene_dir", P.KEYWORD_ONLY, annotation=Annotated[Path, typer.Argument(
+            help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR.")]),
+    ]
+    for o in run_options():
+        params.append(P(o.name, P.KEYWORD_ONLY, default=o.default,
+                        annotation=Annotated[_cli_type(o.type), typer.Option(o.flag, help=o.help)]))
+    params += [
+        P("preset", P.KEYWORD_ONLY, default="default", annotation=Annotated[str, typer.Option(
+            "--preset", help=f"Named configuration: {', '.join(PRESETS)} (see recon.config.PRESETS).")]),
+        P("config", P.KEYWORD_ONLY, default=None, annotation=Annotated[Optional[Path], typer.Option(  # noqa: UP045
+            "--config", help="TOML or JSON file of options (nested as report.json's config; the matcher's "
+                             "options in a matcher table).")]),
+        P("set_", P.KEYWORD_ONLY, default=None, annotation=Annotated[Optional[list[str]], typer.Option(  # noqa: UP045
+            "--set", help="KEY=VALUE, repeatable: any option (e.g. tracks.merge_px=1.5) or the matcher's own "
+                          "(e.g. matcher.fine_top_k=3, matcher.coarse.rank_by=matches).")]),
+        P("rerun", P.KEYWORD_ONLY, default="save", annotation=Annotated[str, typer.Option(
+            "--rerun", help="Rerun recording: save (OUT/recording.rrd, default), save:PATH, spawn (open the "
+                            "viewer), connect[:URL] (stream to a running viewer) or none.")]),
+    ]
+    return inspect.Signature(params)
+
+
+def build_config(ctx: typer.Context, kw: dict[str, Any]) -> Any:
+    """The RunConfig of this command line: preset < --config < flags given < --set."""
+    from recon.config import build_run_config
+
+    def given_on_command_line(name: str) -> bool:  # by name: click's enum or typer's vendored copy
+        source = ctx.get_parameter_source(name)
+        return source is not None and source.name != "DEFAULT"
+
+    given = {o.path: kw[o.name] for o in run_options() if given_on_command_line(o.name)}
+    return build_run_config(kw["preset"], kw["config"], given, kw["set_"])
+
+
+def run(**kw: Any) -> None:
+    """Match the photos of a scene, write a COLMAP database and reconstruct a sparse model."""
+    import sys
+
+    from rich.console import Console
+
+    from recon.core.pipeline import run_scene
+    from recon.core.report import summary_table
+    from recon.core.scene import find_image_dir
+    from recon.errors import UserError
+    from recon.viz.rerun_log import RECORDING_NAME, RerunLogger, find_viewer, parse_sink
+
+    scene_dir: Path = kw["scene_dir"]
+    cfg = build_config(kw["ctx"], kw)
+    # the same output folder run_scene uses; the logger opens its sink lazily, after
+    # run_scene has checked and claimed the folder
+    out_dir = (cfg.output.out or scene_dir.expanduser() / "recon").resolve()
+    try:
+        sink = parse_sink(kw["rerun"], out_dir / RECORDING_NAME)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    if sink.kind == "spawn" and find_viewer() is None:
+        raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; "
+                        "use --rerun save and open the file elsewhere")
+    image_dir = find_image_dir(scene_dir.expanduser()).resolve()  # InputError for a missing folder
+    logger = RerunLogger(sink, lambda name: image_dir / name) if sink.enabled else None
+    ok = False
+    try:
+        report = run_scene(scene_dir, cfg, observer=[logger] if logger else None)
+        ok = True
+    except KeyboardInterrupt:
+        # typer turns Ctrl-C into a *returned* exit code that `recon.cli.main` does not
+        # look at; SystemExit reaches it. Everything written so far is complete (atomic).
+        print("recon: interrupted; rerun the same command to resume", file=sys.stderr)
+        raise SystemExit(130) from None
+    finally:
+        saved = logger.close(ok) if logger else None
+    stale = out_dir / RECORDING_NAME
+    if cfg.output.overwrite and saved != stale and stale.is_file():  # --overwrite: no recording of an older run
+        stale.unlink()
+    Console().print(summary_table(report))
+    if saved is not None:
+        print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "
+              f"open it with: recon view {saved}", file=sys.stderr)
+    if not report.ok:
+        print(f"recon: error: {report.message}", file=sys.stderr)
+        # SystemExit, not typer.Exit: click (standalone_mode=False) would turn Exit into a
+        # return value that `recon.cli.main` does not look at
+        raise SystemExit(1)
+
+
+run.__signature__ = _signature()  # type: ignore[attr-defined]
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("run")
-    def run(
-        scene_dir: Annotated[Path, typer.Argument(help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR.")],
-        out: Annotated[Optional[Path], typer.Option("--out", help="Output folder (default: SCENE_DIR/recon).")] = None,
-        method: Annotated[str, typer.Option("--method", help=f"Pair matcher: {', '.join(METHODS)}.")] = "extra-affine",
-        pairs: Annotated[str, typer.Option("--pairs", help="exhaustive, sequential:K, or a file of name pairs.")] = "exhaustive",
-        max_size: Annotated[int, typer.Option("--max-size", help="Working resolution for matching (longer side, px; 0 = full).")] = 1600,
-        camera_mode: Annotated[str, typer.Option("--camera-mode", help="auto, single or per-image.")] = "auto",
-        merge_px: Annotated[float, typer.Option("--merge-px", help="Keypoint merge radius in working px (0 = no merging).")] = 2.0,
-        seed: Annotated[int, typer.Option("--seed", help="Seed for the matcher and COLMAP's RANSAC.")] = 0,
-        workers: Annotated[int, typer.Option("--workers", help="Parallel pair tasks (0 = all cores).")] = 0,
-        overwrite: Annotated[bool, typer.Option("--overwrite", help="Delete this tool's outputs in --out and start over.")] = False,
-        clean_points: Annotated[bool, typer.Option("--clean-points", help="Drop statistical outliers from points.ply.")] = False,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bars on stderr.")] = True,
-        rerun: Annotated[str, typer.Option(
-            "--rerun", help="Rerun recording: save (OUT/recording.rrd, default), save:PATH, spawn (open the "
-                            "viewer), connect[:URL] (stream to a running viewer) or none.")] = "save",
-    ) -> None:
-        """Match the photos of a scene, write a COLMAP database and reconstruct a sparse model."""
-        import sys
-
-        from rich.console import Console
-
-        from recon.errors import UserError
-        from recon.core.pipeline import RunConfig, run_scene
-        from recon.core.report import summary_table
-        from recon.viz.rerun_log import RECORDING_NAME, RerunLogger, find_viewer, parse_sink
-        from recon.core.scene import find_image_dir
-
-        cfg = RunConfig(out=out, method=method, pairs=pairs, max_size=max_size, camera_mode=camera_mode,
-                        merge_px=merge_px, seed=seed, workers=workers, overwrite=overwrite,
-                        clean_points=clean_points, progress=progress)
-        # the same output folder run_scene uses; the logger opens its sink lazily, after
-        # run_scene has checked and claimed the folder
-        out_dir = (cfg.out or scene_dir.expanduser() / "recon").resolve()
-        try:
-            sink = parse_sink(rerun, out_dir / RECORDING_NAME)
-        except ValueError as e:
-            raise UserError(str(e)) from None
-        if sink.kind == "spawn" and find_viewer() is None:
-            raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; "
-                            "use --rerun save and open the file elsewhere")
-        image_dir = find_image_dir(scene_dir.expanduser()).resolve()  # InputError for a missing folder
-        logger = RerunLogger(sink, lambda name: image_dir / name) if sink.enabled else None
-        ok = False
-        try:
-            report = run_scene(scene_dir, cfg,
-                               on_pair=logger.on_pair if logger else None,
-                               on_model=logger.on_model if logger else None,
-                               on_sfm_step=logger.on_sfm_step if logger else None,
-                               on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
-            ok = True
-        except KeyboardInterrupt:
-            # typer turns Ctrl-C into a *returned* exit code that `recon.cli.main` does not
-            # look at; SystemExit reaches it. Everything written so far is complete (atomic).
-            print("recon: interrupted; rerun the same command to resume", file=sys.stderr)
-            raise SystemExit(130) from None
-        finally:
-            saved = logger.close(ok) if logger else None
-        stale = out_dir / RECORDING_NAME
-        if overwrite and saved != stale and stale.is_file():  # --overwrite: no recording of an older run
-            stale.unlink()
-        Console().print(summary_table(report))
-        if saved is not None:
-            print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "
-                  f"open it with: recon view {saved}", file=sys.stderr)
-        if not report.ok:
-            print(f"recon: error: {report.message}", file=sys.stderr)
-            # SystemExit, not typer.Exit: click (standalone_mode=False) would turn Exit into a
-            # return value that `recon.cli.main` does not look at
-            raise SystemExit(1)
+    app.command("run")(run)

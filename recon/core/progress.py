@@ -1,36 +1,40 @@
-"""Console progress for long stages (rich bars on stderr, or nothing) and COLMAP's log level."""
+"""Console progress for long stages: rich bars on stderr, or nothing (tests, --no-progress).
+
+The bars share `recon.log.console()` with the log lines, so a warning printed while they are
+drawn lands above them.
+"""
 
 from __future__ import annotations
 
-import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from typing import Any
 
 
 class Progress:
-    """rich progress bars on stderr, or nothing (tests, --no-progress)."""
+    """One bar per stage that asks for one (`task`), labelled with the stage's name."""
 
     def __init__(self, enabled: bool):
-        self._p = None
+        self._p: Any = None
         if enabled:
-            from rich.console import Console
-            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn,
-                                       TextColumn, TimeElapsedColumn)
+            from rich.progress import BarColumn, MofNCompleteColumn, SpinnerColumn, TextColumn, TimeElapsedColumn
+            from rich.progress import Progress as RichProgress
 
-            self._p = Progress(SpinnerColumn(), TextColumn("{task.description:<10}"), BarColumn(),
-                               MofNCompleteColumn(), TimeElapsedColumn(),
-                               console=Console(stderr=True), transient=False)
+            from recon.log import console
 
-    def __enter__(self):
+            self._p = RichProgress(SpinnerColumn(), TextColumn("{task.description:<10}"), BarColumn(),
+                                   MofNCompleteColumn(), TimeElapsedColumn(), console=console(), transient=False)
+
+    def __enter__(self) -> Progress:
         if self._p is not None:
             self._p.__enter__()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: Any) -> None:
         if self._p is not None:
             self._p.__exit__(*exc)
 
     def task(self, desc: str, total: int | None) -> Callable[..., None]:
+        """A bar of `total` steps (None: unknown); returns `advance(n=1, done=False)`."""
         if self._p is None:
             return lambda *a, **k: None
         tid = self._p.add_task(desc, total=total)
@@ -44,23 +48,3 @@ class Progress:
                 p.advance(tid, n)
 
         return advance
-
-    def print(self, msg: str) -> None:
-        if self._p is not None:
-            self._p.console.print(msg, markup=False, highlight=False)
-        else:
-            print(msg, file=sys.stderr)
-
-
-@contextmanager
-def quiet_colmap() -> Iterator[None]:
-    """COLMAP logs every step (and its own failures, e.g. "Failed to create any sparse model")
-    to stderr; the pipeline reports everything itself on one line, so keep only fatal messages."""
-    import pycolmap
-
-    old = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 3
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old

@@ -9,18 +9,29 @@
   (`merged`: `num_tracks`, `mean_length`, `max_length`, `inconsistent` tracks holding two
   keypoints of one image, `inconsistent_share` of the observations, and
   `consistent_mean_length`, the figure the console shows; see `recon.core.tracks.track_stats`) and
-  without (`unmerged`: every pair keeps its own keypoints, so every track has length exactly 2). `mean_track_length` above is the model's (after SfM with merging). A
-  reconstruction without merging can be measured with `--merge-px 0` (see `recon.core.tracks`);
-* `seconds_total`, `peak_mb` (peak resident memory of the process), `stages` (seconds per stage);
+  without (`unmerged`: every pair keeps its own keypoints, so every track has length exactly 2).
+  `mean_track_length` above is the model's (after SfM with merging). A reconstruction without
+  merging can be measured with `--merge-px 0` (see `recon.core.tracks`); the stock comparison's
+  `tracks` has one entry, `graph` (its keypoints are per image already);
+* `seconds_total`, `peak_mb` (peak resident memory during the run, sampled) and `peak_growth_mb`
+  (its growth over the memory before the run), `stages` (seconds per stage, in order) and
+  `stages_reused` (stages skipped because an earlier run built their outputs from the same key);
 * `pairs`: one row per pair in pair order: `image0`, `image1`, `reference` (name of the image
   the matcher simulated, or null), `best_view` ({t, phi, s} or null), `raw_matches` (matcher
   output), `merged_matches` (after keypoint merging), `verified_inliers` (COLMAP's two-view
   geometry), `config` (COLMAP's two-view model), `cached` (loaded from the pair cache), `reason`;
 * `skipped`: [{name, reason}] for unreadable, corrupt, duplicate or un-importable images;
-* `warnings`, `config` (the RunConfig), `camera_mode_used`, `pairs_computed`, `pairs_cached`,
+* `warnings`, `config` (the RunConfig, nested as `recon.config.RunConfig.to_dict`), `method` (the
+  matcher, or `colmap-sift`), `preset` (stock COLMAP's preset; empty for `recon run`),
+  `camera_mode_used`, `pairs_computed`, `pairs_cached`,
   `features_computed` / `features_reused` (FeatureStore entries: each image's features are
   computed once per run and shared by all its pairs), `database_reused`, `model_reused`,
-  `merge` (keypoint merging counts), `sfm_options`, `scene`, `out`;
+  `merge` (keypoint merging counts), `scene`, `out`;
+* `verified_pairs`, `inliers_per_pair_mean` / `_median` (over verified pairs), `num_keypoints`
+  (per image, as written to the database) and `num_keypoints_mean`;
+* `sfm_options` (the incremental mapper's options) and `colmap_options` (`verification`, and for
+  stock also `extraction` and `matching`): pycolmap's own `todict()` of the options used
+  (`options_dict`), every field, not a hand-picked few;
 * `sfm_growth`: one row per registration step of incremental mapping, in order: `step`,
   `model` (index of the model being built), `image` (just registered), `registered_images`
   and `num_points3D` of that model right after the step (kept from the run that built the
@@ -31,11 +42,13 @@ Files are written to a temporary name and `os.replace`d, so a kill never leaves 
 
 from __future__ import annotations
 
-from recon.core.jsonio import write_json_atomic  # noqa: F401  (re-exported: pipeline, stock)
-
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+
+from recon.core.jsonio import write_json_atomic
 
 
 @dataclass
@@ -80,7 +93,17 @@ class RunReport:
     database_reused: bool = False
     model_reused: bool = False
     num_points_ply: int = 0
+    method: str = ""
+    preset: str = ""
+    verified_pairs: int = 0
+    inliers_per_pair_mean: float = 0.0
+    inliers_per_pair_median: float = 0.0
+    num_keypoints_mean: float = 0.0
+    num_keypoints: dict[str, int] = field(default_factory=dict)
+    peak_growth_mb: float | None = None
+    stages_reused: list[str] = field(default_factory=list)
     sfm_options: dict[str, Any] = field(default_factory=dict)
+    colmap_options: dict[str, Any] = field(default_factory=dict)
     sfm_growth: list[dict[str, Any]] = field(default_factory=list)
     pairs: list[PairRow] = field(default_factory=list)
     skipped: list[dict[str, str]] = field(default_factory=list)
@@ -103,8 +126,35 @@ class RunReport:
         self.registered = registered
 
 
+    def set_pair_summary(self) -> None:
+        """`verified_pairs` and inliers per verified pair from `pairs`; keypoints per image mean."""
+        counts = [p.verified_inliers for p in self.pairs if p.verified_inliers > 0]
+        self.verified_pairs = len(counts)
+        self.inliers_per_pair_mean = float(np.mean(counts)) if counts else 0.0
+        self.inliers_per_pair_median = float(np.median(counts)) if counts else 0.0
+        self.num_keypoints_mean = float(np.mean(list(self.num_keypoints.values()))) if self.num_keypoints else 0.0
+
+
 def write_report(report: RunReport, path: str | Path) -> None:
     write_json_atomic(path, report.to_dict())
+
+
+def options_dict(options: Any) -> dict[str, Any]:
+    """pycolmap options (e.g. `IncrementalPipelineOptions`) as plain JSON data through their own
+    `todict()`: every field, nested options as dicts, enums by name, sets as sorted lists."""
+
+    def plain(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {str(k): plain(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        if isinstance(v, (set, frozenset)):
+            return sorted(plain(x) for x in v)
+        if v is None or isinstance(v, (bool, int, float, str)):
+            return v
+        return getattr(v, "name", None) or str(v)
+
+    return plain(options.todict())
 
 
 def summary_table(report: RunReport):
@@ -132,7 +182,7 @@ def summary_table(report: RunReport):
     verified = sum(1 for p in report.pairs if p.verified_inliers > 0)
     t.add_row("pairs verified", f"{verified} / {len(report.pairs)}")
     for k, v in report.stages.items():
-        t.add_row(f"  {k} (s)", f"{v:.1f}")
+        t.add_row(f"  {k} (s)", f"{v:.1f}" + (" (reused)" if k in report.stages_reused else ""))
     t.add_row("total (s)", f"{report.seconds_total:.1f}")
     t.add_row("peak memory (MB)", f"{report.peak_mb:.0f}")
     t.add_row("output", report.out)

@@ -41,9 +41,9 @@ other method's cloud.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
-import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -53,6 +53,7 @@ import numpy as np
 from matching.errors import InputError
 
 from matching.memory import PeakRss
+from recon.config import DEFAULT_MAX_SIZE
 from recon.errors import UserError
 from recon.eval.evaluate import center, evaluate_model, umeyama
 from recon.eval.gt import find_gt, gt_source
@@ -64,6 +65,7 @@ OURS_KEY = "extra_affine"  # its key in compare.json and its output folder
 GT_KEYS = ("rel_rot_err_deg_median", "rel_trans_err_deg_median", "auc_5", "auc_10", "auc_20",
            "center_err_median", "center_err_rel_median")
 Log = Callable[[str], None]
+log = logging.getLogger(__name__)
 
 
 def _nolog(_: str) -> None:
@@ -145,9 +147,8 @@ def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: in
     report, err = None, None
     with PeakRss() as mem:
         try:
-            rep = run_scene(scene_dir, RunConfig(out=out, overwrite=True, max_size=max_size, method=OURS,
-                                                 pairs=pairs, seed=seed, progress=progress),
-                            on_warning=_nolog)
+            rep = run_scene(scene_dir, RunConfig.from_options(out=out, overwrite=True, max_size=max_size, method=OURS,
+                                                              pairs=pairs, seed=seed, progress=progress))
             report = rep.to_dict()
         except (InputError, UserError) as e:
             if strict:
@@ -155,7 +156,7 @@ def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: in
             err = f"{type(e).__name__}: {e}"
         except Exception as e:  # one failing run must not end the comparison
             err = f"{type(e).__name__}: {e}"
-            traceback.print_exc()
+            log.debug("recon run on %s failed", scene_dir, exc_info=True)
     return method_result(OURS_KEY, report, mem, gt, out, err)
 
 
@@ -166,14 +167,15 @@ def run_stock_preset(scene_dir: Path, out: Path, gt, preset: str, max_size: int,
     report, err = None, None
     with PeakRss() as mem:
         try:
-            report = run_stock(scene_dir, out, preset=preset, pairs=pairs, max_size=max_size, seed=seed)  # type: ignore[arg-type]
+            report = run_stock(scene_dir, out, preset=preset, pairs=pairs, max_size=max_size,  # type: ignore[arg-type]
+                               seed=seed).to_dict()
         except (InputError, UserError) as e:
             if strict:
                 raise
             err = f"{type(e).__name__}: {e}"
         except Exception as e:
             err = f"{type(e).__name__}: {e}"
-            traceback.print_exc()
+            log.debug("stock COLMAP (%s) on %s failed", preset, scene_dir, exc_info=True)
     return method_result(f"stock-{preset}", report, mem, gt, out, err)
 
 
@@ -271,7 +273,7 @@ def clouds_between(stock_row: dict[str, Any], ours_row: dict[str, Any], threshol
 
 # one scene --------------------------------------------------------------------------------------
 def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets: Sequence[str] = ("default",),
-                  max_size: int = 1600, pairs: str = "exhaustive", seed: int = 0, progress: bool = False,
+                  max_size: int = DEFAULT_MAX_SIZE, pairs: str = "exhaustive", seed: int = 0, progress: bool = False,
                   threshold_rel: float = 0.01, strict: bool = True, log: Log = _nolog,
                   on_warning: Log = _nolog) -> dict[str, Any]:
     """Run stock (each preset) and ours, evaluate, compare clouds, write OUT/compare.json.
@@ -288,7 +290,7 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
     bad = [p for p in presets if p not in PRESETS]
     if bad or not presets:
         raise UserError(f"stock preset {', '.join(bad) or '(none)'}: choose from {', '.join(PRESETS)}")
-    RunConfig(max_size=max_size, pairs=pairs, seed=seed)  # validates the options (UserError)
+    RunConfig.from_options(max_size=max_size, pairs=pairs, seed=seed)  # validates the options (UserError)
     out_dir = Path(out).expanduser().resolve() if out is not None else scene_dir / "compare"
     out_dir.mkdir(parents=True, exist_ok=True)
 
@@ -475,7 +477,7 @@ def scenes_table(results: list[dict[str, Any]], max_size: int):
 
 # several scenes ---------------------------------------------------------------------------------
 def run_scenes(root: str | Path, out_root: str | Path, scenes: Sequence[str] | None = None,
-               presets: Sequence[str] = ("default",), max_size: int = 1600, pairs: str = "exhaustive",
+               presets: Sequence[str] = ("default",), max_size: int = DEFAULT_MAX_SIZE, pairs: str = "exhaustive",
                seed: int = 0, progress: bool = False, json_path: str | Path | None = None,
                log: Log = _nolog) -> list[dict[str, Any]]:
     """`compare_scene` for each scene folder under `root` into OUT_ROOT/<scene>; the JSON file

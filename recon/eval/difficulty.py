@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from recon.config import DEFAULT_MAX_SIZE
 from recon.eval.compare import OURS_KEY, compare_scene
 from recon.core.jsonio import write_json_atomic
 
@@ -75,7 +76,7 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
 
 def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_azimuth_deg: float = DEFAULT_MAX_AZIMUTH,
                    presets: Sequence[str] = DEFAULT_PRESETS, seed: int = 0, image_size: tuple[int, int] | None = None,
-                   max_size: int = 1600, recompute: bool = False, log: Log = lambda _m: None) -> dict[str, Any]:
+                   max_size: int = DEFAULT_MAX_SIZE, recompute: bool = False, log: Log = lambda _m: None) -> dict[str, Any]:
     """Render and compare every sweep scene; returns {"config", "rows"} (also OUT/difficulty.json)."""
     from recon.errors import UserError
     from scenes.presets import get_preset

@@ -1,26 +1,31 @@
 """COLMAP's stock pipeline (SIFT extraction + SIFT matching) through pycolmap, as the baseline
 for `recon run`: same images, same pair selection, same cameras, same incremental mapping.
 
-`run_stock(scene_dir, out_dir, preset="default"|"high", pairs="exhaustive", max_size=1600,
-seed=0, camera_mode="auto")` returns a report dict with the keys of `recon run`'s report.json
-where they apply (see `recon.core.report.RunReport`) plus `method`, `preset`, `verified_pairs`,
-`inliers_per_pair_mean` / `_median`, `num_keypoints_mean` and the COLMAP options used, and writes
-`OUT/database.db`, `OUT/sparse/0` (when a model is found) and `OUT/report.json`.
+`run_stock(scene_dir, out_dir, preset="default"|"high", pairs="exhaustive", max_size,
+seed=0, camera_mode="auto")` runs the SAME orchestrator as `recon run`
+(`recon.core.orchestrator.run_stages`) with COLMAP's own stages in place of ours and returns the
+same `RunReport` (also `OUT/report.json`), with `method` "colmap-sift", `preset`, and the COLMAP
+options used in `colmap_options` (`extraction`, `matching`, `verification`). It writes
+`OUT/database.db`, `OUT/sparse/0` (when a model is found) and `OUT/report.json`, replacing its
+own earlier files (no resuming: every run starts fresh).
 
-What is shared with `recon run` (so only the features and matches differ):
+Stages (see `recon.core.stages` for the shared ones):
 
-* images: `recon.core.scene.scan_scene` (unreadable, tiny and duplicate photos skipped the same way);
-* cameras: `recon.core.database.import_scene_images` fills the database first (same camera model,
-  same `--camera-mode auto` rule, same EXIF / 1.2 * max(w, h) focal prior);
-  `pycolmap.extract_features` then finds the images already there and only adds keypoints and
-  descriptors (no new cameras, rigs or frames);
-* pairs: `recon.core.pairs` (`exhaustive` -> `pycolmap.match_exhaustive`; `sequential:K` and pairs
+* `load`, `pairs`: ours (unreadable, tiny and duplicate photos skipped the same way; the same
+  pair list);
+* `database` (`StockDatabase`): cameras and images exactly as `recon run` imports them
+  (`recon.core.database.import_scene_images`: same camera model, same `--camera-mode auto`
+  rule, same EXIF / 1.2 * max(w, h) focal prior), into `database.db.tmp`;
+* `features` (`StockFeatures`): `pycolmap.extract_features`, which finds the images already
+  there and only adds keypoints and descriptors (no new cameras, rigs or frames);
+* `match` (`StockMatch`): `exhaustive` -> `pycolmap.match_exhaustive`; `sequential:K` and pairs
   files -> the same pair list written to `OUT/pairs.txt` and `pycolmap.match_image_pairs`, so
-  the pairs are exactly those `recon run` matches. COLMAP's own sequential matcher would also
-  add quadratic-overlap pairs);
-* mapping: `recon.core.sfm.mapping_options` with the same working-to-full-resolution `px_scale`
-  (COLMAP's SIFT runs on the image downscaled to `max_size` and writes keypoints in full-
-  resolution pixels, exactly like our matcher), `recon.core.sfm.run_incremental`.
+  the pairs are exactly those `recon run` matches (COLMAP's own sequential matcher would also
+  add quadratic-overlap pairs). COLMAP matches and verifies in one call, so there is no
+  separate `verify` stage (and no `tracks`: stock keypoints are per image already);
+* `sfm`, `export`: ours (`recon.core.sfm.mapping_options` with the same working-to-full-resolution
+  `px_scale`: COLMAP's SIFT runs on the image downscaled to `max_size` and writes keypoints in
+  full-resolution pixels, exactly like our matcher), without points.ply.
 
 Presets. `default`: COLMAP's SIFT defaults with `FeatureExtractionOptions.max_image_size =
 max_size`. `high`: also `sift.estimate_affine_shape` and `sift.domain_size_pooling` (COLMAP's
@@ -28,21 +33,17 @@ covariant-detector path: slower, more robust to viewpoint change) and
 `FeatureMatchingOptions.guided_matching` (a second matching pass constrained by the estimated
 two-view geometry). pycolmap 4 moved `max_image_size` from SiftExtractionOptions to
 FeatureExtractionOptions and `guided_matching` from SiftMatchingOptions to FeatureMatchingOptions.
-
 Two-view verification is COLMAP's default (`TwoViewGeometryOptions()`, 4 px RANSAC threshold at
-full resolution) with the RANSAC seeded; matching and verification are one call in COLMAP, so they
-are one stage (`match`) here.
+full resolution) with the RANSAC seeded.
 
-A run that finds no model is not an error: the report has status "no_model" and a message. A
-COLMAP failure (an exception from pycolmap) gives status "failed" with the message. Only a
-missing scene folder or a bad argument raises (InputError / UserError / ValueError).
+Error contract (the same as `recon run`): an unusable scene or a bad argument raises InputError
+/ UserError; a run that finds no model returns a report with status "no_model" and a message.
 """
 
 from __future__ import annotations
 
 import os
-import time
-from collections.abc import Callable
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -50,18 +51,18 @@ import numpy as np
 import pycolmap
 
 from matching.errors import InputError
-
-from recon.core import sfm
-from matching.memory import PeakRss
-from recon.errors import UserError
-from recon.core.database import CAMERA_MODES, import_scene_images, read_verified
-from recon.core.pairs import make_pairs, parse_pairs_spec
+from recon.config import DEFAULT_MAX_SIZE, RunConfig
+from recon.core.context import Run
+from recon.core.database import import_scene_images, read_verified
+from recon.core.observer import RunObserver, as_observer
+from recon.core.orchestrator import run_stages
 from recon.core.outdir import remove_outputs
-from recon.core.pipeline import _Stages
-from recon.core.progress import quiet_colmap
-from recon.core.report import PairRow, RunReport, write_json_atomic
-from recon.core.scene import scan_scene
+from recon.core.report import PairRow, RunReport, options_dict
+from recon.core.stages import Export, Load, Pairs, Sfm
+from recon.core.stages.database import remove_db, replace_db
+from recon.core.state import StageState
 from recon.core.tracks import track_stats
+from recon.errors import UserError
 
 Preset = Literal["default", "high"]
 PRESETS: tuple[str, ...] = ("default", "high")
@@ -72,7 +73,7 @@ STOCK_OUTPUTS = ("database.db", "database.db.tmp", "database.db-journal", "datab
 
 
 # options ----------------------------------------------------------------------------------------
-def extraction_options(preset: str = "default", max_size: int = 1600, num_threads: int = -1
+def extraction_options(preset: str = "default", max_size: int = DEFAULT_MAX_SIZE, num_threads: int = -1
                        ) -> pycolmap.FeatureExtractionOptions:
     o = pycolmap.FeatureExtractionOptions()
     o.max_image_size = int(max_size) if max_size else -1  # 0 = full resolution, as in recon run
@@ -99,23 +100,15 @@ def verification_options(seed: int = 0) -> pycolmap.TwoViewGeometryOptions:
     return o
 
 
-def options_summary(eo: pycolmap.FeatureExtractionOptions, mo: pycolmap.FeatureMatchingOptions,
-                    vo: pycolmap.TwoViewGeometryOptions) -> dict[str, Any]:
-    return dict(
-        max_image_size=eo.max_image_size, max_num_features=eo.sift.max_num_features,
-        estimate_affine_shape=eo.sift.estimate_affine_shape, domain_size_pooling=eo.sift.domain_size_pooling,
-        peak_threshold=eo.sift.peak_threshold, max_ratio=mo.sift.max_ratio, max_distance=mo.sift.max_distance,
-        cross_check=mo.sift.cross_check, guided_matching=mo.guided_matching,
-        max_num_matches=mo.max_num_matches, ransac_max_error=vo.ransac.max_error,
-        min_num_inliers=vo.min_num_inliers, ransac_random_seed=vo.ransac.random_seed,
-    )
+def _threads(run: Run) -> int:
+    return int(run.cfg.workers) if run.cfg.workers > 0 else -1  # COLMAP: -1 = all cores
+
+
+def _db_tmp(run: Run) -> Path:
+    return run.db_path.with_name(run.db_path.name + ".tmp")
 
 
 # helpers ----------------------------------------------------------------------------------------
-def _remove_own_outputs(out: Path) -> None:
-    remove_outputs(out, STOCK_OUTPUTS)
-
-
 def _write_pairs_file(path: Path, pairs: list[tuple[str, str]]) -> tuple[list[tuple[str, str]], list[str]]:
     """COLMAP's pairs list (one `name0 name1` per line). COLMAP splits lines at spaces, so pairs
     naming an image with whitespace in its name cannot be imported: dropped with a warning."""
@@ -148,164 +141,136 @@ def _read_db_counts(db_path: Path, ids: dict[str, int], pairs: list[tuple[str, s
     return nk, raw
 
 
+# stages -----------------------------------------------------------------------------------------
+class _Always:
+    """A stage without a key: it always runs."""
+
+    def key(self, run: Run) -> str | None:
+        return None
+
+    def reuse(self, run: Run, record: dict[str, Any]) -> bool:
+        return False
+
+
+class StockDatabase(_Always):
+    """Cameras and images exactly as `recon run` imports them, into `database.db.tmp`."""
+
+    name = "database"
+    needs = ("scene",)
+    makes = ("image_ids",)
+
+    def run(self, run: Run) -> None:
+        tmp = _db_tmp(run)
+        remove_db(tmp)
+        ids, used, missing = import_scene_images(tmp, run.image_dir, run.data.scene.names, run.cfg.database.camera_mode)
+        run.data.image_ids = ids
+        run.report.camera_mode_used = used
+        for n in missing:
+            run.report.skipped.append({"name": n, "reason": "COLMAP could not read the image"})
+            run.warn(f"skipped {n}: COLMAP could not read the image")
+        return None
+
+
+class StockFeatures(_Always):
+    """COLMAP's SIFT extraction (`pycolmap.extract_features`) of the imported images."""
+
+    name = "features"
+    needs = ("scene", "image_ids")
+    makes: tuple[str, ...] = ()
+
+    def __init__(self, preset: str) -> None:
+        self.preset = preset
+
+    def run(self, run: Run) -> None:
+        eo = extraction_options(self.preset, run.cfg.load.max_size, _threads(run))
+        run.report.colmap_options["extraction"] = options_dict(eo)
+        names = [n for n in run.data.scene.names if n in run.data.image_ids]
+        pycolmap.extract_features(str(_db_tmp(run)), str(run.image_dir), image_names=names,
+                                  camera_mode=pycolmap.CameraMode.AUTO,  # images exist: unused
+                                  extraction_options=eo, device=pycolmap.Device.cpu)
+        return None
+
+
+class StockMatch(_Always):
+    """COLMAP's SIFT matching and two-view verification (one call), then the pair rows."""
+
+    name = "match"
+    needs = ("scene", "pairs", "image_ids")
+    makes = ("verified", "num_keypoints")
+
+    def __init__(self, preset: str) -> None:
+        self.preset = preset
+
+    def run(self, run: Run) -> None:
+        ids, db_tmp = run.data.image_ids, _db_tmp(run)
+        mo, vo = matching_options(self.preset, _threads(run)), verification_options(run.cfg.seed)
+        run.report.colmap_options.update(matching=options_dict(mo), verification=options_dict(vo))
+        pairs = [(a, b) for a, b in run.data.pairs if a in ids and b in ids]
+        if run.cfg.pairs.spec == "exhaustive":
+            pycolmap.match_exhaustive(str(db_tmp), matching_options=mo,
+                                      pairing_options=pycolmap.ExhaustivePairingOptions(),
+                                      verification_options=vo, device=pycolmap.Device.cpu)
+        else:
+            pairs, warnings = _write_pairs_file(run.out / "pairs.txt", pairs)
+            for w in warnings:
+                run.warn(w)
+            po = pycolmap.ImportedPairingOptions()
+            po.match_list_path = str(run.out / "pairs.txt")
+            pycolmap.match_image_pairs(str(db_tmp), matching_options=mo, pairing_options=po,
+                                       verification_options=vo, device=pycolmap.Device.cpu)
+        replace_db(db_tmp, run.db_path)
+        run.data.pairs = pairs
+        run.data.verified = read_verified(run.db_path)
+        nk, raw = _read_db_counts(run.db_path, ids, pairs)
+        run.data.num_keypoints = nk
+        rows, inliers = [], []
+        for (a, b), n_raw in zip(pairs, raw, strict=True):
+            ia, ib = ids[a], ids[b]
+            n_in, conf, inl = run.data.verified.get((min(ia, ib), max(ia, ib)), (0, "", np.zeros((0, 2), np.uint32)))
+            if ia > ib:
+                inl = inl[:, ::-1]
+            inliers.append(inl)
+            rows.append(PairRow(image0=a, image1=b, raw_matches=n_raw, merged_matches=n_raw,
+                                verified_inliers=int(n_in), config=conf))
+        run.report.pairs = rows
+        run.report.pairs_computed = len(rows)
+        run.report.num_keypoints = nk
+        run.report.tracks = {
+            "graph": track_stats(nk, pairs, inliers),
+            "note": "connected components of COLMAP's verified match graph before SfM (stock SIFT "
+                    "keypoints are per image, so tracks span several images without merging)",
+        }
+        if not any(r.verified_inliers > 0 for r in rows):
+            run.warn("no pair passed geometric verification (too few or inconsistent matches)")
+        return None
+
+
+def stock_stages(preset: str) -> list[Any]:
+    """The stages of the stock comparison, in order (see module doc)."""
+    return [Load(), Pairs(), StockDatabase(), StockFeatures(preset), StockMatch(preset), Sfm(),
+            Export(ply=False, who="stock COLMAP")]
+
+
 # the run ----------------------------------------------------------------------------------------
 def run_stock(scene_dir: str | Path, out_dir: str | Path, preset: Preset = "default", pairs: str = "exhaustive",
-              max_size: int = 1600, seed: int = 0, camera_mode: str = "auto", workers: int = 0,
-              on_stage: Callable[[str], None] | None = None) -> dict[str, Any]:
+              max_size: int = DEFAULT_MAX_SIZE, seed: int = 0, camera_mode: str = "auto", workers: int = 0,
+              observer: RunObserver | Sequence[RunObserver] | None = None, progress: bool = False) -> RunReport:
     """Reconstruct `scene_dir` with COLMAP's own SIFT pipeline into `out_dir` (see module doc).
 
-    `workers`: COLMAP threads (0 = all cores). `on_stage(name)` is called as each stage starts.
+    `workers`: COLMAP threads (0 = all cores). `observer`: the run's events, as for `run_scene`.
     Our own files in `out_dir` (database.db, sparse/, pairs.txt, report.json) are replaced.
     """
     if preset not in PRESETS:
-        raise ValueError(f"stock preset {preset!r}: choose one of {', '.join(PRESETS)}")
-    if camera_mode not in CAMERA_MODES:
-        raise UserError(f"camera mode {camera_mode!r}: choose one of {', '.join(CAMERA_MODES)}")
-    if not isinstance(max_size, int) or (max_size != 0 and max_size < 64):
-        raise UserError(f"max size {max_size}: use 0 (full resolution) or at least 64 px")
-    try:
-        spec = parse_pairs_spec(pairs)
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    t_start = time.perf_counter()
-    threads = int(workers) if workers > 0 else -1
+        raise UserError(f"stock preset {preset!r}: choose one of {', '.join(PRESETS)}")
+    cfg = RunConfig.from_options(out=out_dir, pairs=pairs, max_size=max_size, seed=seed, camera_mode=camera_mode,
+                                 workers=workers, progress=progress)
     root = Path(scene_dir).expanduser()
     if not root.is_dir():
         raise InputError(f"{root}: no such scene folder")
     root = root.resolve()
     out = Path(out_dir).expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
-    _remove_own_outputs(out)
-
-    config = dict(method=METHOD, preset=preset, pairs=str(spec), max_size=max_size, seed=seed,
-                  camera_mode=camera_mode, workers=workers, out=str(out))
-    report = RunReport(scene=str(root), out=str(out), config=config)
-    eo, mo, vo = extraction_options(preset, max_size, threads), matching_options(preset, threads), verification_options(seed)
-    extra: dict[str, Any] = dict(method=METHOD, preset=preset, colmap_options=options_summary(eo, mo, vo),
-                                 verified_pairs=0, inliers_per_pair_mean=0.0, inliers_per_pair_median=0.0,
-                                 num_keypoints_mean=0.0, peak_growth_mb=None)
-    stages = _Stages()
-    db_path, db_tmp = out / "database.db", out / "database.db.tmp"
-    rec = None
-
-    def stage(name: str):
-        if on_stage is not None:
-            on_stage(name)
-        return stages(name)
-
-    def finish(status: str, message: str = "") -> dict[str, Any]:
-        report.status, report.message = status, message
-        report.stages = {k: round(v, 3) for k, v in stages.times.items()}
-        report.seconds_total = round(time.perf_counter() - t_start, 3)
-        d = report.to_dict()
-        d.update(extra)
-        write_json_atomic(out / "report.json", d)
-        return d
-
-    with PeakRss() as mem, quiet_colmap():
-        try:
-            # load: the same usable images as recon run ------------------------------------------
-            with stage("load"):
-                scene, grays = scan_scene(root, max_size=max_size or None, workers=max(1, os.cpu_count() or 1))
-                del grays
-            report.skipped = [{"name": s.name, "reason": s.reason} for s in scene.skipped]
-            report.warnings.extend(scene.warnings)
-            report.num_images = len(scene.images)
-            if len(scene.images) < 2:
-                report.peak_mb = round(mem.total_mb or 0.0, 1)
-                return finish("no_model", f"{scene.image_dir}: need at least 2 usable images, found {len(scene.images)}")
-            names = scene.names
-            pair_list, pw = make_pairs(spec, names)
-            report.warnings.extend(pw)
-
-            # database: cameras and images exactly as recon run imports them ---------------------
-            with stage("database"):
-                ids, used_mode, missing = import_scene_images(db_tmp, scene.image_dir, names, camera_mode)
-            report.camera_mode_used = used_mode
-            for n in missing:
-                report.skipped.append({"name": n, "reason": "COLMAP could not read the image"})
-                report.warnings.append(f"skipped {n}: COLMAP could not read the image")
-            names = [n for n in names if n in ids]
-
-            with stage("extract"):
-                pycolmap.extract_features(str(db_tmp), str(scene.image_dir), image_names=names,
-                                          camera_mode=pycolmap.CameraMode.AUTO,  # images exist: unused
-                                          extraction_options=eo, device=pycolmap.Device.cpu)
-
-            with stage("match"):  # COLMAP matches and verifies in one call
-                if spec.kind == "exhaustive":
-                    pair_list = [(a, b) for a, b in pair_list if a in ids and b in ids]
-                    pycolmap.match_exhaustive(str(db_tmp), matching_options=mo,
-                                              pairing_options=pycolmap.ExhaustivePairingOptions(),
-                                              verification_options=vo, device=pycolmap.Device.cpu)
-                else:
-                    pair_list = [(a, b) for a, b in pair_list if a in ids and b in ids]
-                    pair_list, w = _write_pairs_file(out / "pairs.txt", pair_list)
-                    report.warnings.extend(w)
-                    po = pycolmap.ImportedPairingOptions()
-                    po.match_list_path = str(out / "pairs.txt")
-                    pycolmap.match_image_pairs(str(db_tmp), matching_options=mo, pairing_options=po,
-                                               verification_options=vo, device=pycolmap.Device.cpu)
-            os.replace(db_tmp, db_path)
-
-            # pair rows: raw matches and COLMAP's verified inliers --------------------------------
-            verified = read_verified(db_path)
-            nk, raw = _read_db_counts(db_path, ids, pair_list)
-            rows, inliers = [], []
-            for (a, b), n_raw in zip(pair_list, raw):
-                ia, ib = ids[a], ids[b]
-                n_in, conf, inl = verified.get((min(ia, ib), max(ia, ib)), (0, "", np.zeros((0, 2), np.uint32)))
-                if ia > ib:
-                    inl = inl[:, ::-1]
-                inliers.append(inl)
-                rows.append(PairRow(image0=a, image1=b, raw_matches=n_raw, merged_matches=n_raw,
-                                    verified_inliers=int(n_in), config=conf))
-            report.pairs = rows
-            report.pairs_computed = len(rows)
-            counts = [r.verified_inliers for r in rows if r.verified_inliers > 0]
-            extra.update(verified_pairs=len(counts),
-                         inliers_per_pair_mean=float(np.mean(counts)) if counts else 0.0,
-                         inliers_per_pair_median=float(np.median(counts)) if counts else 0.0,
-                         num_keypoints_mean=float(np.mean(list(nk.values()))) if nk else 0.0,
-                         num_keypoints=nk)
-            report.tracks = {
-                "graph": track_stats(nk, pair_list, inliers),
-                "note": "connected components of COLMAP's verified match graph before SfM (stock SIFT "
-                        "keypoints are per image, so tracks span several images without merging)",
-            }
-            if not counts:
-                report.warnings.append("no pair passed geometric verification (too few or inconsistent matches)")
-
-            # sfm: the same incremental mapping options as recon run ------------------------------
-            px_scale = float(np.mean([1.0 / min(im.scale_xy) for im in scene.images if im.name in ids]))
-            opts = sfm.mapping_options(seed, sfm.MAPPING_THREADS, px_scale)
-            report.sfm_options = sfm.options_summary(opts)
-            with stage("sfm"):
-                res = sfm.run_incremental(db_path, scene.image_dir, opts)
-            rec = res.reconstruction
-            report.num_models, report.model_sizes = res.num_models, res.model_sizes
-            report.sfm_growth = res.growth
-
-            with stage("export"):
-                report.set_model(sfm.model_stats(rec), sfm.registered_names(rec))
-                if rec is not None and rec.num_points3D() > 0:
-                    sfm.write_model_atomic(rec, out / "sparse" / "0")
-        except (InputError, UserError):
-            raise
-        except Exception as e:  # a COLMAP failure is a result of the baseline, not a crash
-            for p in (db_tmp,):
-                p.unlink(missing_ok=True)
-            report.peak_mb = round(mem.total_mb or 0.0, 1)
-            return finish("failed", f"COLMAP failed: {type(e).__name__}: {e}")
-    report.peak_mb = round(mem.total_mb or 0.0, 1)
-    extra["peak_growth_mb"] = None if mem.peak_mb is None else round(mem.peak_mb, 1)
-    if rec is None or rec.num_points3D() == 0:
-        n_ok = int(extra["verified_pairs"])
-        return finish("no_model", f"stock COLMAP found no model ({n_ok} of {len(report.pairs)} pairs passed "
-                                  f"geometric verification, and incremental mapping could not initialise a "
-                                  f"model from them); the database and report are kept in {out}")
-    unregistered = [n for n in names if n not in set(report.registered)]
-    if unregistered:
-        shown = ", ".join(unregistered[:5]) + (" ..." if len(unregistered) > 5 else "")
-        report.warnings.append(f"{len(unregistered)} of {len(names)} images not registered: {shown}")
-    return finish("ok")
+    remove_outputs(out, STOCK_OUTPUTS)
+    report = RunReport(scene=str(root), out=str(out), config=cfg.to_dict(), method=METHOD, preset=preset)
+    run = Run(cfg, root, out, report, as_observer(observer), StageState(None))
+    return run_stages(run, stock_stages(preset))

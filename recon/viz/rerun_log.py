@@ -1,7 +1,8 @@
 """Logging a run (or one pair) to Rerun: the 3D model, per-pair diagnostics, plots and a summary.
 
-`RerunLogger` plugs into `recon.core.pipeline.run_scene` through its hooks (`on_pair`, `on_model`)
-and never touches the pipeline itself. Entity layout of a recording:
+`RerunLogger` is a `recon.core.observer.RunObserver` (`run_scene(..., observer=logger)`):
+it logs pairs, SfM steps and the final model as the run emits them, and never touches the
+pipeline. Entity layout of a recording:
 
 * `world/cameras/<image>`: `Transform3D` (COLMAP's `cam_from_world`, logged as
   ChildFromParent), its `image` child: `Pinhole` (intrinsics scaled to the thumbnail) and
@@ -36,6 +37,7 @@ before the pipeline has checked and claimed it. A saved recording is written to 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import shutil
 import sys
@@ -49,19 +51,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.types import PairResult
+from recon.core.observer import BaseRunObserver
 
 RECORDING_NAME = "recording.rrd"
 SINK_KINDS = ("save", "spawn", "connect", "none")
 THUMB_PX = 320  # longest side of the camera images in the 3D view
-# Longest side of each image in a pair's side-by-side match picture, and JPEG quality: a
-# 30-image scene (435 pairs) recorded 91 MB at 640 px / 85 (pictures full of match lines
-# compress poorly), so 512 px / 80.
+# Longest side of each image in a pair's side-by-side match picture, and JPEG quality: the
+# recording's size is mostly these pictures (measured in docs/decisions.md, "Rerun recordings").
 PAIR_PX = 512
 JPEG_QUALITY = 80
 GROWTH_POINTS = 20000  # points per step of the growth replay (keeps a 30-image recording small)
 GROWTH_NEW = (255, 140, 0)  # the camera just registered
 GROWTH_OLD = (150, 150, 150)  # cameras registered earlier
 GROWTH_PTS = (90, 160, 230)
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -124,7 +127,7 @@ def _resize_longest(img: NDArray[np.uint8], px: int) -> tuple[NDArray[np.uint8],
 
 def _png(img_rgb: NDArray[np.uint8]) -> bytes:
     """PNG of an RGB picture: lossless, and tiny for flat-colour plots such as the coarse heat map
-    (raw RGB cost 108 KB per pair, 47 MB of a 30-image recording)."""
+    (raw RGB images cost far more: docs/decisions.md, "Rerun recordings")."""
     ok, buf = cv2.imencode(".png", cv2.cvtColor(img_rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError("PNG encoding failed")
@@ -265,8 +268,8 @@ def summary_markdown(report: Any) -> str:
     return "\n".join(lines) + "\n"
 
 
-class RerunLogger:
-    """Logs a run to one Rerun sink; use `on_pair` / `on_model` as `run_scene` hooks, then `close()`."""
+class RerunLogger(BaseRunObserver):
+    """Logs a run to one Rerun sink: pass it as `run_scene(..., observer=logger)`, then `close()`."""
 
     def __init__(self, sink: Sink, image_path: Callable[[str], Path], *, application_id: str = "recon",
                  recording_id: str | None = None) -> None:
@@ -339,7 +342,7 @@ class RerunLogger:
         """Run one logging call, adding its wall time to `seconds` (the overhead measurement).
 
         A logging failure (a viewer closed under `connect`, a full disk) must not cost the
-        reconstruction: the first one is reported once on stderr, kept in `error`, and logging
+        reconstruction: the first one is logged once as a warning, kept in `error`, and logging
         stops; the run goes on.
         """
         if self.error is not None:
@@ -349,12 +352,12 @@ class RerunLogger:
             fn(*args)
         except Exception as e:
             self.error = f"{type(e).__name__}: {e}"
-            print(f"recon: warning: Rerun logging stopped ({self.error}); the run goes on", file=sys.stderr)
+            log.warning("Rerun logging stopped (%s); the run goes on", self.error)
         finally:
             self.seconds += time.perf_counter() - t0
 
     def on_pair(self, i: int, name0: str, name1: str, result: PairResult, cached: bool) -> None:
-        """`run_scene`'s `on_pair` hook: the pair's diagnostics (see module doc)."""
+        """RunObserver.on_pair: the pair's diagnostics (see module doc)."""
         self._timed(self._log_pair, i, name0, name1, result, cached)
 
     def _log_pair(self, i: int, name0: str, name1: str, r: PairResult, cached: bool) -> None:
@@ -390,7 +393,7 @@ class RerunLogger:
         rec.log("plots/pair/seconds", rr.Scalars(float(r.timings.get("total", 0.0))))
 
     def on_sfm_step(self, step: Any, live: Any) -> None:
-        """`run_scene`'s `on_sfm_step` hook: one frame of the growth replay (see module doc)."""
+        """RunObserver.on_sfm_step: one frame of the growth replay (see module doc)."""
         self._timed(self._log_growth_step, step, live)
 
     def _log_growth_step(self, step: Any, live: Any) -> None:
@@ -420,7 +423,7 @@ class RerunLogger:
         rec.reset_time()
 
     def on_model(self, model: Any, report: Any) -> None:
-        """`run_scene`'s `on_model` hook: verdicts, plots, the final model, summary, blueprint."""
+        """RunObserver.on_model: verdicts, plots, the final model, summary, blueprint."""
         self._timed(self._log_model, model, report)
 
     def _log_model(self, model: Any, report: Any) -> None:
@@ -541,18 +544,18 @@ def log_single_pair(sink: Sink, path0: Path, path1: Path, result: PairResult) ->
     paths = {path0.name: path0, path1.name: path1} if path0.name != path1.name else {}
     n0, n1 = (path0.name, path1.name) if paths else (str(path0), str(path1))
     lookup = paths or {str(path0): path0, str(path1): path1}
-    log = RerunLogger(sink, lambda n: lookup[n], application_id="recon-match")
+    logger = RerunLogger(sink, lambda n: lookup[n], application_id="recon-match")
     ok = False
     try:
-        log.on_pair(0, n0, n1, result, False)
-        if log.rec is not None:
+        logger.on_pair(0, n0, n1, result, False)
+        if logger.rec is not None:
             base = pair_entity(n0, n1)
-            log.rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
+            logger.rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
                 rrb.Spatial2DView(name="matches", origin=f"{base}/matches"),
                 rrb.Vertical(rrb.Spatial2DView(name="coarse scores", origin=f"{base}/coarse"),
                              rrb.TextDocumentView(name="info", origin=f"{base}/info")),
                 column_shares=[3, 2])), make_active=True, make_default=True)
         ok = True
     finally:
-        saved = log.close(ok)
+        saved = logger.close(ok)
     return saved

@@ -1,0 +1,86 @@
+"""Stage `database`: cameras, images, merged keypoints and raw matches in a COLMAP database.
+
+Needs: `scene`, `pairs`, `merged`, `keypoints`. Makes: `image_ids` (COLMAP's id per image
+name) and `num_keypoints`. Writes `OUT/cache/matches.db` (through `matches.db.tmp` and a
+rename): cameras from EXIF (`database.camera_mode`), images, keypoints (+0.5 for COLMAP's pixel
+centres) and *all* the matcher's matches, before verification (the verify stage works on a
+copy). See `recon.core.database`.
+
+Key: the camera mode, every image's name and pixel digest, the merged keypoints, the pairs and
+their merged matches. Reused when unchanged and `matches.db` exists (the image ids, the camera
+mode used and the images COLMAP could not read come back from the state record).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from recon.core.context import Run
+from recon.core.database import import_scene_images, write_keypoints_and_matches
+from recon.core.state import fingerprint
+
+SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
+
+
+def remove_db(path: Path) -> None:
+    """A database file and its sqlite side files, if present."""
+    for p in [path, *(Path(f"{path}{s}") for s in SQLITE_SIDE_FILES)]:
+        p.unlink(missing_ok=True)
+
+
+def replace_db(tmp: Path, path: Path) -> None:
+    """Rename a finished database (and any sqlite side file) over `path`."""
+    for suffix in SQLITE_SIDE_FILES:  # a closed sqlite db leaves none; be safe
+        side = Path(f"{tmp}{suffix}")
+        if side.exists():
+            os.replace(side, Path(f"{path}{suffix}"))
+    os.replace(tmp, path)
+
+
+class Database:
+    name = "database"
+    needs = ("scene", "pairs", "merged", "keypoints")
+    makes = ("image_ids", "num_keypoints")
+
+    @staticmethod
+    def path(run: Run) -> Path:
+        return run.cache / "matches.db"
+
+    def key(self, run: Run) -> str | None:
+        d = run.data
+        return fingerprint("database", run.cfg.database.camera_mode,
+                           [(im.name, im.digest) for im in d.scene.images],
+                           *[d.keypoints[n] for n in d.scene.names], d.pairs, *d.merged.matches)
+
+    def reuse(self, run: Run, record: dict[str, Any]) -> bool:
+        if not self.path(run).is_file() or not record.get("image_ids"):
+            return False
+        self._done(run, {k: int(v) for k, v in record["image_ids"].items()}, record.get("camera_mode_used", ""),
+                   list(record.get("missing", [])))
+        return True
+
+    def run(self, run: Run) -> dict[str, Any]:
+        d, path = run.data, self.path(run)
+        tmp = path.with_name(path.name + ".tmp")
+        advance = run.bar(len(d.scene.names) + len(d.pairs))
+        try:
+            ids, used, missing = import_scene_images(tmp, run.image_dir, d.scene.names, run.cfg.database.camera_mode)
+            write_keypoints_and_matches(tmp, ids, d.keypoints, d.pairs, d.merged.matches, on_item=lambda: advance())
+        except BaseException:
+            remove_db(tmp)
+            raise
+        replace_db(tmp, path)
+        self._done(run, ids, used, missing)
+        return {"image_ids": ids, "camera_mode_used": used, "missing": missing}
+
+    @staticmethod
+    def _done(run: Run, ids: dict[str, int], used: str, missing: list[str]) -> None:
+        run.data.image_ids = ids
+        run.data.num_keypoints = {n: int(len(run.data.keypoints[n])) for n in run.data.scene.names if n in ids}
+        run.report.camera_mode_used = used
+        for n in missing:
+            reason = "COLMAP could not read the image"
+            run.report.skipped.append({"name": n, "reason": reason})
+            run.warn(f"skipped {n}: {reason}")

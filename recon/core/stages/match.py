@@ -1,0 +1,168 @@
+"""Stage `match`: every pair matched by an independent task, resumed pair by pair.
+
+Needs: `scene`, `store`, `pairs`. Makes: `results` (one PairResult per pair, full-resolution
+pixels, pair order) and `cached`. Each pair is the pure task `match_pair_task(store, matcher,
+name0, name1) -> PairResult`, submitted to `run.executor` (`recon.core.engine`: a thread pool by
+default; OpenCV releases the GIL). Each finished pair is converted to full-resolution pixels
+and written atomically to `OUT/cache/pairs/<key>.npz` (`recon.core.paircache`; the key hashes
+the matcher's identity, both images' pixel digests and working sizes), so an interrupted run
+recomputes only the missing pairs: that per-pair key is this stage's cache, so the stage itself
+has none and always runs. Results are collected in pair order, never completion order, so a
+fixed seed gives the same output whatever the scheduling. One failing pair is a warning and an
+empty result, never the end of the run.
+
+Options: `match.method` and `match.matcher` (the matcher's own options, see `make_matcher`),
+`match.engine`, `workers`, `seed`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from concurrent.futures import FIRST_COMPLETED, Future, wait
+from pathlib import Path
+from typing import Any, cast
+
+from matching.registry import PairMatcher, get_matcher
+from matching.store import FeatureStore
+from matching.types import PairResult
+from recon.config import MatchConfig
+from recon.core.context import Run
+from recon.core.paircache import load_pair_result, pair_cache_key, result_to_full_res, save_pair_result
+from recon.errors import UserError
+
+log = logging.getLogger(__name__)
+
+
+def match_pair_task(store: FeatureStore, matcher: PairMatcher, name0: str, name1: str) -> PairResult:
+    """One pair: a pure function of the per-image store and the matcher (no pipeline state)."""
+    return matcher.match(store, name0, name1)
+
+
+def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) -> PairMatcher:
+    """The registry's matcher for multi-view use: no final homography filter (COLMAP verifies),
+    the extra-affine matcher's `multiview` variant, seeded, single-threaded inside when pairs
+    already run in parallel (`inner_workers`), then the user's `cfg.matcher` options on top
+    (`section.field` keys become the registry's `section__field`; deeper ones replace the
+    nested dataclass). A plain method name means `MatchConfig(method=name)`."""
+    cfg = MatchConfig(method=cfg) if isinstance(cfg, str) else cfg
+    try:
+        probe = get_matcher(cfg.method)
+    except (ValueError, ImportError) as e:
+        raise UserError(f"--method {cfg.method}: {e}") from None
+    base_cfg = getattr(probe, "cfg", None)
+    known = {f.name for f in dataclasses.fields(base_cfg)} if dataclasses.is_dataclass(base_cfg) else set()
+    wanted = {"final_homography": False, "seed": int(seed), "workers": int(inner_workers)}
+    overrides: dict[str, Any] = {k: v for k, v in wanted.items() if k in known}
+    if cfg.method == "extra-affine":
+        overrides["variant"] = "multiview"
+    if cfg.matcher:
+        base = getattr(get_matcher(cfg.method, **overrides), "cfg", None)
+        for key, value in cfg.matcher.items():
+            section, _, rest = key.partition(".")
+            if not rest:
+                overrides[key] = value
+            elif "." not in rest:
+                overrides[f"{section}__{rest}"] = value
+            else:  # deeper: replace the nested dataclass of the section (e.g. escalation.two_sided_grid.a)
+                name, _, leaf = rest.partition(".")
+                current = overrides.get(f"{section}__{name}", getattr(getattr(base, section), name))
+                overrides[f"{section}__{name}"] = _replace_path(current, leaf, value)
+    try:
+        return get_matcher(cfg.method, **overrides)
+    except (TypeError, ValueError) as e:
+        raise UserError(f"matcher options {cfg.matcher}: {e}") from None
+
+
+def _replace_path(obj: Any, path: str, value: Any) -> Any:
+    head, _, rest = path.partition(".")
+    return dataclasses.replace(obj, **{head: _replace_path(getattr(obj, head), rest, value) if rest else value})
+
+
+def matcher_identity(matcher: PairMatcher) -> str:
+    """A stable text naming the matcher and the config fields that change its output (part of
+    the pair cache key; thread counts are left out)."""
+    cfg = getattr(matcher, "cfg", None) or getattr(matcher, "config", None)
+    kind = f"{type(matcher).__module__}.{type(matcher).__qualname__}"
+    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
+        if "workers" in {f.name for f in dataclasses.fields(cfg)}:
+            cfg = dataclasses.replace(cfg, workers=0)
+        return f"{kind}:{cfg!r}"
+    return f"{kind}:{getattr(matcher, 'name', '')}"
+
+
+class Match:
+    name = "match"
+    needs = ("scene", "store", "pairs")
+    makes = ("results", "cached")
+
+    def key(self, run: Run) -> str | None:
+        return None  # resumed pair by pair (see module doc)
+
+    def reuse(self, run: Run, record: dict[str, Any]) -> bool:
+        return False
+
+    def run(self, run: Run) -> None:
+        cfg, pairs, store = run.cfg, run.data.pairs, run.data.store
+        matcher = run.matcher or make_matcher(cfg.match, cfg.seed,
+                                              inner_workers=1 if len(pairs) >= cfg.num_workers else 0)
+        log.debug("matcher: %s", matcher_identity(matcher))
+        results, cached = self._match_all(run, matcher, run.cache / "pairs")
+        run.data.results, run.data.cached = results, cached
+        report = run.report
+        report.pairs_cached = int(sum(cached))
+        report.pairs_computed = len(pairs) - report.pairs_cached
+        report.features_computed, report.features_reused = int(store.misses), int(store.hits)
+        return None
+
+    @staticmethod
+    def _match_all(run: Run, matcher: PairMatcher, pair_dir: Path) -> tuple[list[PairResult], list[bool]]:
+        """All pairs, from the cache or computed on the executor; results in pair order."""
+        pairs, store = run.data.pairs, run.data.store
+        advance = run.bar(len(pairs))
+        images = {im.name: im for im in run.data.scene.images}
+        mid = matcher_identity(matcher)
+        results: list[PairResult | None] = [None] * len(pairs)
+        cached = [False] * len(pairs)
+        paths = [pair_dir / f"{pair_cache_key(mid, images[a], images[b])}.npz" for a, b in pairs]
+        todo: list[int] = []
+        for i, (a, b) in enumerate(pairs):
+            r = load_pair_result(paths[i])
+            if r is None:
+                todo.append(i)
+                continue
+            results[i], cached[i] = r, True
+            advance()
+            run.observer.on_pair(i, a, b, r, True)
+        if todo:
+            pair_dir.mkdir(parents=True, exist_ok=True)
+            futures: dict[Future, int] = {run.executor.submit(match_pair_task, store, matcher, *pairs[i]): i
+                                          for i in todo}
+            pending = set(futures)
+            try:
+                while pending:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for f in sorted(done, key=lambda f: futures[f]):
+                        i = futures[f]
+                        a, b = pairs[i]
+                        try:
+                            raw = f.result()
+                        except Exception as e:  # one bad pair must not end the run
+                            run.warn(f"matching {a} / {b} failed: {type(e).__name__}: {e}")
+                            results[i] = PairResult.empty(getattr(matcher, "name", "?"),
+                                                          f"matcher error: {type(e).__name__}: {e}")
+                            advance()
+                            continue
+                        full = result_to_full_res(raw, images[a], images[b])
+                        save_pair_result(paths[i], full)
+                        # use exactly what a resumed run would load, so both give identical output
+                        r = results[i] = load_pair_result(paths[i]) or full
+                        advance()
+                        log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
+                                  r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
+                        run.observer.on_pair(i, a, b, r, False)
+            except BaseException:  # Ctrl-C, a failing cache write: drop the tasks not started yet
+                for f in pending:
+                    f.cancel()
+                raise
+        return cast(list[PairResult], results), cached  # every slot is filled above

@@ -1,0 +1,85 @@
+"""Stage `sfm`: incremental mapping of `OUT/database.db` into a sparse model (`recon.core.sfm`).
+
+Needs: `scene`, `image_ids` (and `OUT/database.db`, verified). Makes: `reconstruction`, the
+largest model (or None), written to `OUT/sparse/0` through a temporary folder. Each
+registration step is an `on_sfm_step` event (the live model) and a step of the progress bar.
+
+Key: the verify stage's key and every mapper option (pycolmap's `todict()`, which holds the
+seed). Reused when unchanged and `sparse/0` can be read; the number of models, their sizes and
+the registration order come back from the state record (a reused model has no growth events).
+Options: `sfm.num_threads`, `seed`; the mapper's tuned options are in `recon.core.sfm`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pycolmap
+
+from recon.config import RunConfig
+from recon.core import sfm
+from recon.core.context import Run
+from recon.core.report import options_dict
+from recon.core.state import fingerprint
+
+
+def mapping_options(cfg: RunConfig, px_scale: float) -> pycolmap.IncrementalPipelineOptions:
+    """`recon.core.sfm.mapping_options` for this run: seeded, pixel thresholds scaled by the
+    working-to-full-resolution factor `px_scale`."""
+    return sfm.mapping_options(cfg.seed, cfg.sfm.num_threads, px_scale)
+
+
+def read_model(model_dir: Path) -> pycolmap.Reconstruction | None:
+    """The model in `model_dir`, or None when absent, unreadable or empty."""
+    try:
+        rec = pycolmap.Reconstruction()
+        rec.read(str(model_dir))
+        return rec if rec.num_reg_images() > 0 else None
+    except Exception:
+        return None
+
+
+class Sfm:
+    name = "sfm"
+    needs = ("scene", "image_ids")
+    makes = ("reconstruction",)
+
+    @staticmethod
+    def model_dir(run: Run) -> Path:
+        return run.out / "sparse" / "0"
+
+    def key(self, run: Run) -> str | None:
+        run.report.sfm_options = options_dict(mapping_options(run.cfg, run.px_scale()))
+        return fingerprint("sfm", run.keys.get("verify"), run.report.sfm_options)
+
+    def reuse(self, run: Run, record: dict[str, Any]) -> bool:
+        rec = read_model(self.model_dir(run)) if self.model_dir(run).is_dir() else None
+        if rec is None:
+            return False
+        report = run.report
+        report.model_reused = True
+        report.num_models = int(record.get("num_models", 1))
+        report.model_sizes = list(record.get("model_sizes", [rec.num_reg_images()]))
+        report.sfm_growth = list(record.get("sfm_growth", []))
+        run.data.reconstruction = rec
+        return True
+
+    def run(self, run: Run) -> dict[str, Any] | None:
+        advance = run.bar(len(run.data.scene.images))
+
+        def step(s: sfm.GrowthStep, live: pycolmap.Reconstruction) -> None:
+            advance(2 if s.registered_images == 2 else 1)
+            run.observer.on_sfm_step(s, live)
+
+        res = sfm.run_incremental(run.db_path, run.image_dir, mapping_options(run.cfg, run.px_scale()), on_step=step)
+        advance(done=True)
+        report, rec = run.report, res.reconstruction
+        report.num_models, report.model_sizes, report.sfm_growth = res.num_models, res.model_sizes, res.growth
+        if res.hook_error:
+            run.warn(f"the SfM progress hook failed and was switched off: {res.hook_error}")
+        run.data.reconstruction = rec
+        if rec is None:
+            return None  # nothing to reuse next time
+        sfm.write_model_atomic(rec, self.model_dir(run))
+        return {"num_models": res.num_models, "model_sizes": res.model_sizes, "sfm_growth": res.growth}
