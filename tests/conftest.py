@@ -153,11 +153,18 @@ def facade_extreme_scene(rendered_scene) -> Path:
 @pytest.fixture(scope="session")
 def corner_sift_run(corner_scene, tmp_path_factory):
     """(out folder, RunReport, warnings) of `run_scene` on `corner_scene` with the SIFT baseline."""
-    from recon.core.pipeline import RunConfig, run_scene
+    from recon.config import RunConfig
+    from recon.core.observer import BaseRunObserver
+    from recon.core.pipeline import run_scene
 
     out = tmp_path_factory.mktemp("corner-sift") / "out"
     warnings: list[str] = []
-    rep = run_scene(corner_scene, RunConfig(out=out, method="sift", progress=False), on_warning=warnings.append)
+
+    class Warnings(BaseRunObserver):
+        def on_warning(self, message: str) -> None:
+            warnings.append(message)
+
+    rep = run_scene(corner_scene, RunConfig.from_options(out=out, method="sift", progress=False), observer=Warnings())
     return out, rep, warnings
 
 

@@ -40,7 +40,7 @@ def scene(tmp_path_factory) -> Path:
 
 
 def _run(scene: Path, out: Path, **kw) -> Path:
-    rep = run_scene(scene, RunConfig(out=out, method="sift", progress=False, **kw), on_warning=lambda m: None)
+    rep = run_scene(scene, RunConfig.from_options(out=out, method="sift", progress=False, **kw))
     assert rep.ok and rep.registered_images >= 4
     return out
 

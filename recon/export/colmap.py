@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pycolmap
 
-from recon.core.progress import quiet_colmap
+from recon.log import quiet_colmap
 from recon.errors import UserError
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")  # what Gaussian-splatting trainers accept
