@@ -62,6 +62,16 @@ class Features:
                         np.zeros(0, np.float32), np.zeros((0, dim), dtype))
 
 
+def strongest(f: Features, n: int) -> Features:
+    """The `n` features with the largest detector response (all of them when n = 0), in their
+    original order (the first `n` when responses are unknown)."""
+    if not n or len(f) <= n:
+        return f
+    if f.responses is None:
+        return f.subset(np.arange(n))
+    return f.subset(np.sort(np.argsort(-f.responses, kind="stable")[:n]))
+
+
 def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     """A fresh OpenCV detector (they are not thread-safe to share, so one per call)."""
     if cfg.name == "sift":

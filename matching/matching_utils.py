@@ -61,6 +61,19 @@ def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]) -> tuple
     return matches[keep], dist[keep]
 
 
+def dedupe_by_location(kpts_a: NDArray, kpts_b: NDArray, matches: NDArray[np.int32], dist: NDArray,
+                       cell_px: float = 1.5) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Drop matches whose (point a, point b) repeat within `cell_px` (the same point found in
+    several views); keeps the closest descriptor of each group."""
+    if len(matches) == 0:
+        return matches, dist
+    key = np.concatenate([np.floor(kpts_a[matches[:, 0]] / cell_px), np.floor(kpts_b[matches[:, 1]] / cell_px)], axis=1)
+    order = np.argsort(dist, kind="stable")
+    _, first = np.unique(key[order], axis=0, return_index=True)
+    keep = np.sort(order[first])
+    return matches[keep], dist[keep]
+
+
 def ransac_homography(pts0: NDArray, pts1: NDArray, thresh_px: float, seed: int = 0,
                       max_iters: int = 10000, confidence: float = 0.999,
                       ) -> tuple[NDArray[np.float64] | None, NDArray[np.bool_]]:

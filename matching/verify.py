@@ -11,14 +11,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .geometry import homography_jacobian
 from .matching_utils import ransac_homography
-
-
-def homography_jacobian(H: NDArray[np.float64], pt: NDArray) -> NDArray[np.float64]:
-    """2x2 Jacobian of the homography `H` at `pt` (x, y) in pixels: its local affine."""
-    q = H @ np.array([pt[0], pt[1], 1.0])
-    w = q[2]
-    return (H[:2, :2] * w - np.outer(q[:2], H[2, :2])) / (w * w)
 
 
 def plausible_homography(H: NDArray[np.float64] | None, pts_a: NDArray, max_anisotropy: float = 40.0,
