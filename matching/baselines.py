@@ -58,37 +58,54 @@ FLANN_INDEX_KDTREE = 1
 class BaselineConfig:
     """Matching and final-filter settings shared by every baseline."""
 
-    ratio: float = 0.75  # nearest / second-nearest descriptor distance ratio
-    final_homography: bool = True  # fit a RANSAC homography and flag its inliers
-    # RANSAC reprojection threshold, pixels of image 1. 5 px is OpenCV's asift sample (stock).
-    # Precision depends strongly on it: SIFT on graf 1-2 gives 99 % at 1 px, 88-95 % at 1.5 px,
-    # 86 % at 3 px, while the number of correct matches barely changes.
+    ratio: float = 0.75
+    """Nearest / second-nearest descriptor distance ratio."""
+    final_homography: bool = True
+    """Fit a RANSAC homography and flag its inliers."""
     ransac_px: float = 5.0
+    """RANSAC reprojection threshold, px of image 1. 5 px is OpenCV's asift sample (stock);
+    precision depends strongly on it while the number of correct matches barely changes
+    (docs/decisions.md)."""
     ransac_iters: int = 10000
+    """RANSAC iterations at most."""
     ransac_confidence: float = 0.999
-    min_inliers: int = 10  # fewer RANSAC inliers than this: result kept, `reason` says "weak"
-    seed: int = 0  # seeds OpenCV's RNG before FLANN index building and RANSAC
+    """RANSAC confidence."""
+    min_inliers: int = 10
+    """Fewer RANSAC inliers than this: result kept, `reason` says "weak"."""
+    seed: int = 0
+    """Seeds OpenCV's RNG before FLANN index building and RANSAC."""
 
 
 @dataclass(frozen=True)
 class SiftConfig(BaselineConfig):
-    max_features: int = 0  # 0 = unlimited
+    """SIFT, ratio test, RANSAC."""
+
+    max_features: int = 0
+    """SIFT budget per image (0 = unlimited)."""
 
 
 @dataclass(frozen=True)
 class OrbConfig(BaselineConfig):
+    """ORB, ratio test, RANSAC."""
+
     max_features: int = 1000
-    fast_threshold: int = 20  # OpenCV's default: the plain ORB baseline
+    """ORB budget per image."""
+    fast_threshold: int = 20
+    """FAST threshold (OpenCV's default: the plain ORB baseline)."""
 
 
 @dataclass(frozen=True)
 class AffineConfig(BaselineConfig):
     """AffineFeature view sampling (OpenCV's defaults = the ASIFT paper's)."""
 
-    max_tilt: int = 5  # highest power index k of the tilt t = tilt_step^k
+    max_tilt: int = 5
+    """Highest power index k of the tilt t = tilt_step^k."""
     min_tilt: int = 0
+    """Lowest power index k of the tilt."""
     tilt_step: float = math.sqrt(2.0)
-    rotate_step_base: float = 72.0  # longitude step b / t, degrees
+    """Tilt ratio between levels."""
+    rotate_step_base: float = 72.0
+    """Longitude step b / t, degrees."""
 
     @property
     def view_key(self) -> str:
@@ -97,15 +114,24 @@ class AffineConfig(BaselineConfig):
 
 @dataclass(frozen=True)
 class AsiftConfig(AffineConfig):
-    max_features: int = 0  # per simulated view; 0 = unlimited
-    flann_trees: int = 5  # FLANN KD-tree, as OpenCV's samples/python/asift.py
+    """ASIFT as OpenCV's samples/python/asift.py: AffineFeature(SIFT), FLANN, ratio test, RANSAC."""
+
+    max_features: int = 0
+    """SIFT budget per simulated view (0 = unlimited)."""
+    flann_trees: int = 5
+    """FLANN KD-tree count (as OpenCV's samples/python/asift.py)."""
     flann_checks: int = 50
+    """FLANN leaf checks."""
 
 
 @dataclass(frozen=True)
 class AorbConfig(AffineConfig):
-    max_features: int = 1000  # per simulated view
+    """AffineFeature(ORB), brute-force Hamming ratio test, RANSAC."""
+
+    max_features: int = 1000
+    """ORB budget per simulated view."""
     fast_threshold: int = 20
+    """FAST threshold."""
 
 
 # helpers ----------------------------------------------------------------------------------------

@@ -81,7 +81,7 @@ class MatcherConfig:
     with `final_homography`, else fundamental matrix)."""
     min_result_inliers: int = 10
     """A final result with fewer verified matches is returned empty, with the reason (random
-    matches between unrelated images reach ~4-8)."""
+    matches between unrelated images reach a few RANSAC inliers, docs/decisions.md)."""
     workers: int = 0
     """Threads for independent views (0 = all cores, 1 = none, for callers that already run pairs
     in parallel). Results do not depend on it."""

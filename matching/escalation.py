@@ -50,8 +50,9 @@ class EscalationConfig:
     pair_rescore: int = 64
     """The best view pairs re-scored with `pair_orb_fine` features (0 = no re-scoring)."""
     pair_orb_fine: int = 1000
-    """ORB features per view of the re-scoring: 300 rank EVD fox's right pairs far down, 1000 rank
-    them first, and scoring all 2025 pairs with 1000 costs ~5x more (docs/decisions.md)."""
+    """ORB features per view of the re-scoring: `pair_orb` ranks the right view pairs of EVD fox
+    far down and this many rank them first, but scoring every pair with this many costs several
+    times more (docs/decisions.md)."""
     pair_top_k: int = 3
     """Best view pairs fine-matched view against view with SIFT and fused in original pixels."""
     pair_ratio: float = 0.8

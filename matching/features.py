@@ -19,11 +19,14 @@ DetectorName = Literal["sift", "orb"]
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Which detector and its budget. `max_features = 0` means unlimited (SIFT only)."""
+    """Which detector and its budget."""
 
     name: DetectorName = "sift"
+    """"sift" (float descriptors, L2) or "orb" (binary, Hamming)."""
     max_features: int = 0
-    root_sift: bool = False  # L1-normalise + sqrt SIFT descriptors (Arandjelovic 2012)
+    """Feature budget; 0 = unlimited (SIFT only; ORB then keeps 1000)."""
+    root_sift: bool = False
+    """L1-normalise and square-root SIFT descriptors (Arandjelovic 2012)."""
 
     @property
     def key(self) -> str:
@@ -88,9 +91,9 @@ _sift_gate = threading.BoundedSemaphore(1)
 def set_sift_concurrency(n: int) -> None:
     """How many SIFT detections may run at once in this process (default 1).
 
-    OpenCV's SIFT doubles its input and keeps ~11 float layers of it: ~120 MB for an 800 px
-    image, ~300 MB at 1600 px. It is already multi-threaded inside, so running two at once
-    gains only ~15 % (measured on graf, 2 cores) for twice the peak memory.
+    OpenCV's SIFT doubles its input and keeps ~11 float layers of it, and it is already
+    multi-threaded inside, so running two at once gains little time for twice the peak memory
+    (figures in docs/decisions.md).
     """
     global _sift_gate
     _sift_gate = threading.BoundedSemaphore(max(1, int(n)))

@@ -5,6 +5,10 @@ detected in it and mapped back to the original reference image, and its descript
 ratio-matched against the target's SIFT. Several views (the top of the coarse search) can be
 fused: their matches are concatenated and made one-to-one on the target side, keeping the
 closest descriptor. The paper uses a single view (`top_k = 1`).
+
+Also here, the matching primitives of the second, guided rounds (`matching.guided`): ratio tests
+restricted to target keypoints near a homography's prediction (`guided_match`) or within a band
+around a fundamental matrix's epipolar line (`epipolar_guided_match`).
 """
 
 from __future__ import annotations

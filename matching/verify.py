@@ -22,8 +22,8 @@ def plausible_homography(H: NDArray[np.float64] | None, pts_a: NDArray, max_anis
     Checks at the four corners of the bounding box of `pts_a` (the matched region): the
     projective depth w stays positive (the horizon does not cross the region), the local affine
     keeps orientation (det > 0: no mirror), its area scale is within [1/max_scale^2, max_scale^2]
-    and its anisotropy (singular value ratio; the transition tilt, ~22 on the hardest EVD pair)
-    stays below `max_anisotropy`.
+    and its anisotropy (singular value ratio: the transition tilt) stays below `max_anisotropy`
+    (above the hardest EVD pair's, docs/decisions.md).
     """
     if H is None or len(pts_a) < 4:
         return False

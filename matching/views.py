@@ -27,22 +27,25 @@ _CV_INTERP = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR,
 
 @dataclass(frozen=True)
 class GridConfig:
-    """The paper's sampling (§III-B): t = a^k (k = 0..n), phi = j*b/t < 180 deg, s = 1 + k*ds.
-
-    `scale_mode`: "tied" is the paper's s = 1 + k*ds (one scale per tilt); "none" keeps s = 1
-    (the paper's ds = 0 ablation); "cap" is "tied" but limits the zoom so the view's area is at
-    most `max_area_ratio` times the original's (the paper's zoom grows the simulated area as
-    s^2/t, 2.2x at k = 5, which costs time for no measured precision gain).
-    `min_tilt_index` lets escalation simulate only the steep part of the grid.
-    """
+    """The paper's sampling (§III-B): t = a^k (k = 0..n), phi = j*b/t < 180 deg, s = 1 + k*ds."""
 
     a: float = math.sqrt(2.0)
+    """Tilt ratio between grid levels (> 1)."""
     n: int = 5
+    """Highest tilt index: tilts up to a^n (5.66 with the defaults)."""
     b: float = 72.0
+    """Longitude step at t = 1, degrees; the step at tilt t is b / t."""
     ds: float = 0.5
+    """Zoom step per tilt level: s = 1 + k*ds."""
     scale_mode: Literal["tied", "none", "cap"] = "tied"
+    """"tied" is the paper's s = 1 + k*ds (one scale per tilt); "none" keeps s = 1 (the paper's
+    ds = 0 ablation); "cap" is "tied" but limits the zoom so the view's area is at most
+    `max_area_ratio` times the original's (the paper's zoom grows the simulated area as s^2/t,
+    2.2x at k = 5)."""
     max_area_ratio: float = 1.0
+    """The area cap of `scale_mode` "cap", as a multiple of the original's area."""
     min_tilt_index: int = 0
+    """First tilt index of the grid (lets a level simulate only the steep part of the grid)."""
 
     def __post_init__(self) -> None:
         if self.a <= 1.0:
