@@ -83,6 +83,7 @@ def test_band_brings_back_matches_that_a_decoy_hides():
     assert len(d) == len(m) and np.all(np.isfinite(d))
 
 
+@pytest.mark.slow
 def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
     """On a rendered wide pair (GT poses), the guided round adds matches that agree with the
     ground-truth epipolar geometry, at no loss of the consistent fraction."""
@@ -114,6 +115,7 @@ def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
     assert good1 / n1 >= good0 / n0, out  # the F filter also drops first-round outliers
 
 
+@pytest.mark.slow
 def test_guided_round_skips_pairs_without_trustworthy_geometry(shared_data):
     """sacre_coeur (real photos): an overlapping pair gains matches; a pair whose first-round
     F holds few of its matches is left exactly as the first round returned it (without the gate

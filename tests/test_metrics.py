@@ -3,18 +3,16 @@
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from matching.geometry import local_scale
 from matching.metrics import (
     DEFAULT_TH,
     gt_reference,
     inlier_ratio,
-    local_scale,
     precision,
     precision_of_points,
     project,
@@ -22,9 +20,6 @@ from matching.metrics import (
     reprojection_errors,
 )
 from matching.types import PairResult
-
-DATA = Path(os.environ.get("RECON_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
-needs_data = pytest.mark.skipif(not (DATA / "oxford" / "graf").is_dir(), reason=f"shared test data not found at {DATA}")
 
 # Oxford graf H1to2p: a real, clearly projective homography
 H_GRAF = np.array([[8.7976964e-01, 3.1245438e-01, -3.9430589e01],
@@ -151,11 +146,10 @@ def test_reference_correct():
     assert reference_correct(r, np.eye(3), (100, 100)) is None  # GT: same scale
 
 
-@needs_data
-def test_gt_reference_direction_on_real_zoom():
+def test_gt_reference_direction_on_real_zoom(shared_data):
     """A real image zoomed 2x: SIFT keypoints of the same points are ~2x larger in image 1, i.e.
     image 1 resolves the surface better, and gt_reference says image 1."""
-    img0 = cv2.imread(str(DATA / "oxford" / "graf" / "img1.png"), cv2.IMREAD_GRAYSCALE)[200:456, 300:556]
+    img0 = cv2.imread(str(shared_data / "oxford" / "graf" / "img1.png"), cv2.IMREAD_GRAYSCALE)[200:456, 300:556]
     H = _zoom(2.0, 127.5, 127.5)
     img1 = cv2.warpPerspective(img0, H, (256, 256), flags=cv2.INTER_CUBIC)
     sift = cv2.SIFT_create()
