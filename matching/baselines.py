@@ -37,7 +37,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -215,6 +217,7 @@ class _Baseline:
                 result.reason = (f"only {len(matches)} ratio-test matches" if len(matches) < 4
                                  else f"RANSAC found no homography in {len(matches)} ratio-test matches")
             else:
+                assert mask is not None  # a model comes with its inlier mask
                 n_in = int(mask.sum())
                 if n_in < cfg.min_inliers:
                     result.reason = f"weak: only {n_in} RANSAC inliers of {len(matches)} matches"
@@ -225,6 +228,7 @@ class SiftMatcher(_Baseline):
     """Plain SIFT on both original images, L2 brute-force knn, ratio test, RANSAC."""
 
     name = "sift"
+    cfg: SiftConfig
 
     def __init__(self, cfg: SiftConfig = SiftConfig()):
         self.cfg = cfg
@@ -245,6 +249,7 @@ class OrbMatcher(_Baseline):
     """Plain ORB (1000 features), Hamming brute-force knn, ratio test, RANSAC."""
 
     name = "orb"
+    cfg: OrbConfig
 
     def __init__(self, cfg: OrbConfig = OrbConfig()):
         self.cfg = cfg
@@ -266,6 +271,7 @@ class AsiftMatcher(_Baseline):
     """ASIFT: AffineFeature(SIFT) on both images, FLANN KD-tree knn, ratio test, RANSAC."""
 
     name = "asift"
+    cfg: AsiftConfig
 
     def __init__(self, cfg: AsiftConfig = AsiftConfig()):
         self.cfg = cfg
@@ -292,6 +298,7 @@ class AorbMatcher(_Baseline):
     """AORB: AffineFeature(ORB) on both images, Hamming brute-force knn, ratio test, RANSAC."""
 
     name = "aorb"
+    cfg: AorbConfig
 
     def __init__(self, cfg: AorbConfig = AorbConfig()):
         self.cfg = cfg
@@ -311,7 +318,7 @@ class AorbMatcher(_Baseline):
         return cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d0, d1, k=2)
 
 
-_CLASSES: dict[str, tuple[type[_Baseline], type[BaselineConfig]]] = {
+_CLASSES: dict[str, tuple[Callable[[Any], _Baseline], type[BaselineConfig]]] = {
     "sift": (SiftMatcher, SiftConfig),
     "orb": (OrbMatcher, OrbConfig),
     "asift": (AsiftMatcher, AsiftConfig),

@@ -107,6 +107,7 @@ def coarse_search(store: FeatureStore, ref: str, target: str, views: list[ViewPa
     for v in views:
         c = by_view.get(v)
         if c is None:  # another t = 1 view: same score as the first one
+            assert first_t1 is not None
             base = by_view[first_t1]
             c = CoarseScore(view=v, matches=base.matches, inliers=base.inliers, score=base.score,
                             H_target_from_ref=base.H_target_from_ref)

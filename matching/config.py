@@ -128,7 +128,8 @@ class MatcherConfig:
             sec, sep, name = key.replace(".", "__", 1).partition("__")
             if sep:
                 if sec not in sections:
-                    raise ValueError(f"unknown config section {sec!r} in {key!r}; sections: {', '.join(sorted(sections))}")
+                    raise ValueError(f"unknown config section {sec!r} in {key!r}; "
+                                     f"sections: {', '.join(sorted(sections))}")
                 valid = {f.name for f in fields(getattr(base, sec))}
                 if name not in valid:
                     raise ValueError(f"unknown option {key!r}; {sec} has {', '.join(sorted(valid))}")
@@ -164,7 +165,7 @@ def field_docs(cls: type) -> dict[str, str]:
         except (OSError, TypeError):
             continue
         body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
-        for node, nxt in zip(body, body[1:]):
+        for node, nxt in zip(body, body[1:], strict=False):
             if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
                     and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant)
                     and isinstance(nxt.value.value, str)):

@@ -51,7 +51,7 @@ class Features:
     def __len__(self) -> int:
         return int(len(self.kpts))
 
-    def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> "Features":
+    def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> Features:
         resp = None if self.responses is None else self.responses[keep]
         return Features(self.kpts[keep], self.sizes[keep], self.angles[keep], self.descriptors[keep], resp)
 
@@ -60,7 +60,7 @@ class Features:
         return int(self.kpts.nbytes + self.sizes.nbytes + self.angles.nbytes + self.descriptors.nbytes)
 
     @staticmethod
-    def empty(dim: int = 128, dtype=np.float32) -> "Features":
+    def empty(dim: int = 128, dtype=np.float32) -> Features:
         return Features(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
                         np.zeros(0, np.float32), np.zeros((0, dim), dtype))
 
@@ -78,10 +78,10 @@ def strongest(f: Features, n: int) -> Features:
 def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     """A fresh OpenCV detector (they are not thread-safe to share, so one per call)."""
     if cfg.name == "sift":
-        return cv2.SIFT_create(nfeatures=cfg.max_features)
+        return cv2.SIFT.create(nfeatures=cfg.max_features)
     if cfg.name == "orb":
         # fastThreshold lowered from 20 so low-contrast simulated views still yield keypoints
-        return cv2.ORB_create(nfeatures=cfg.max_features or 1000, fastThreshold=10)
+        return cv2.ORB.create(nfeatures=cfg.max_features or 1000, fastThreshold=10)
     raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift' or 'orb'")
 
 

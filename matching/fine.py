@@ -103,7 +103,7 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
     parts = list(executor.map(one, views)) if executor is not None and len(views) > 1 else [one(v) for v in views]
     kpts_ref, matches, dists, per_view = [], [], [], {}
     offset = 0
-    for view, (fv, m, d) in zip(views, parts):
+    for view, (fv, m, d) in zip(views, parts, strict=True):
         per_view[view.key] = int(len(m))
         if len(m):
             used = np.unique(m[:, 0])
@@ -207,7 +207,8 @@ def guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDAr
 def _epipolar_lines(F_t_from_q: NDArray[np.float64], pts_q: NDArray) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """((N, 3) lines F x of the query points, normalised so that a·x + b·y + c is a distance in
     target pixels; (N,) mask of the points whose line is defined). x_tᵀ F x_q = 0."""
-    lines = np.c_[np.asarray(pts_q, np.float64).reshape(-1, 2), np.ones(len(pts_q))] @ np.asarray(F_t_from_q, np.float64).T
+    pts = np.asarray(pts_q, np.float64).reshape(-1, 2)
+    lines = np.c_[pts, np.ones(len(pts))] @ np.asarray(F_t_from_q, np.float64).T
     norm = np.hypot(lines[:, 0], lines[:, 1])
     valid = norm > 0
     return lines / np.where(valid, norm, np.inf)[:, None], valid

@@ -11,6 +11,7 @@ equal precision. Each round keeps the first round's result when it does not impr
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import cv2
 import numpy as np
@@ -60,7 +61,8 @@ def compact(kr: NDArray, kpts_target: NDArray, m_all: NDArray[np.int32], d_all: 
     used = np.unique(m_all[:, 0])
     remap = np.full(len(kr), -1, np.int64)
     remap[used] = np.arange(len(used))
-    return FineMatches(kr[used], kpts_target, np.stack([remap[m_all[:, 0]], m_all[:, 1]], 1).astype(np.int32), d_all, {})
+    matches = np.stack([remap[m_all[:, 0]], m_all[:, 1]], 1).astype(np.int32)
+    return FineMatches(kr[used], kpts_target, matches, d_all, {})
 
 
 def guided_homography_round(ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
@@ -70,7 +72,7 @@ def guided_homography_round(ctx: MatchContext, att: Attempt, res: PairResult) ->
     cfg = ctx.cfg
     ref = att.reference
     assert res.H_1_from_0 is not None
-    H_t_from_ref = res.H_1_from_0 if ref == 0 else np.linalg.inv(res.H_1_from_0)
+    H_t_from_ref = res.H_1_from_0 if ref == 0 else np.asarray(np.linalg.inv(res.H_1_from_0), np.float64)
     ft = original_features(ctx.store, ctx.names[1 - ref], cfg.fine.detector)
     kr, m_all, d_all = rematch_views(
         ctx, ref, att.views,
@@ -105,7 +107,7 @@ def trusted_fundamental(ctx: MatchContext, fm: FineMatches) -> NDArray[np.float6
     inl = mask.ravel().astype(bool)
     if inl.sum() < cfg.guided_epipolar_min_inliers or inl.sum() < cfg.guided_epipolar_min_ratio * len(inl):
         return None
-    return F
+    return cast(NDArray[np.float64], F)
 
 
 def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:

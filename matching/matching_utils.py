@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-
 FLANN_MIN_SIZE = 1500  # brute force below this many descriptors on either side
 
 
@@ -48,7 +47,8 @@ def ratio_filter(knn, ratio: float) -> tuple[NDArray[np.int32], NDArray[np.float
     return np.asarray(out, np.int32), np.asarray(dist, np.float32)
 
 
-def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]
+                 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Keep, for every train index, only its closest query (one-to-one on the train side)."""
     if len(matches) == 0:
         return matches, dist
@@ -79,8 +79,9 @@ def ransac_homography(pts0: NDArray, pts1: NDArray, thresh_px: float, seed: int 
     """H_1_from_0 and its inlier mask by RANSAC with Levenberg-Marquardt refinement (seeded).
 
     OpenCV's classic RANSAC, not USAC-MAGSAC++: at a tight threshold MAGSAC's model kept fewer
-    and less precise inliers on graf (docs/decisions.md). The seed is applied to OpenCV's per-thread RNG just before the call, so results do not
-    depend on which thread runs the pair. Returns (None, all False) below 4 correspondences.
+    and less precise inliers on graf (docs/decisions.md). The seed is applied to OpenCV's
+    per-thread RNG just before the call, so results do not depend on which thread runs the pair.
+    Returns (None, all False) below 4 correspondences.
     """
     n = len(pts0)
     if n < 4:

@@ -151,12 +151,12 @@ def choose_reference(feat0: Features, feat1: Features, cfg: ReferenceConfig = Re
     scale = scale_1_from_0(H, image0_size) if image0_size is not None else math.nan
     if not math.isfinite(scale):  # no image size (or no scale at the centre): median over inlier segments
         scale = math.exp(median_log_scale(p0[inl], p1[inl], cfg.max_segments, seed))
-    ref = larger_image(scale, cfg.scale_tolerance)
-    if ref is None:
+    larger = larger_image(scale, cfg.scale_tolerance)
+    if larger is None:
         why = f"scales equal within {cfg.scale_tolerance:.2f}x (0->1 scale {scale:.2f}, {n_in} inliers)"
         return ReferenceDecision(0, f0, f1, why, n_in, scale)
-    why = f"image {ref} is {max(scale, 1 / scale):.2f}x larger ({n_in} inliers)"
-    return ReferenceDecision(ref, f0, f1, why, n_in, scale)
+    why = f"image {larger} is {max(scale, 1 / scale):.2f}x larger ({n_in} inliers)"
+    return ReferenceDecision(larger, f0, f1, why, n_in, scale)
 
 
 def settle_reference(decision: ReferenceDecision, coarse_for: Callable[[int], list[CoarseScore]],
@@ -182,8 +182,8 @@ def settle_reference(decision: ReferenceDecision, coarse_for: Callable[[int], li
         scale = scale_1_from_0(H if first == 0 else np.linalg.inv(H), image0_size)
         if not math.isfinite(scale):
             scale = 1.0
-        chosen = larger_image(scale, cfg.scale_tolerance)
-        chosen = first if chosen is None else chosen
+        larger = larger_image(scale, cfg.scale_tolerance)
+        chosen = first if larger is None else larger
         coarse_for(chosen)
         decision.reference = chosen
         decision.reason += (f"; coarse view geometry: image 0 maps {scale:.2f}x into image 1 at its centre, "

@@ -56,9 +56,9 @@ def verify_matches(pts_a: NDArray, pts_b: NDArray, model: str, seed: int = 0,
     if n < 8:
         return 0, np.zeros(n, bool)
     cv2.setRNGSeed(seed)
-    F, mask = cv2.findFundamentalMat(np.asarray(pts_a, np.float32), np.asarray(pts_b, np.float32),
-                                     cv2.USAC_MAGSAC, f_thresh_px, 0.999, 10000)
-    if F is None or mask is None:
+    F, f_mask = cv2.findFundamentalMat(np.asarray(pts_a, np.float32), np.asarray(pts_b, np.float32),
+                                       cv2.USAC_MAGSAC, f_thresh_px, 0.999, 10000)
+    if F is None or f_mask is None:
         return 0, np.zeros(n, bool)
-    mask = mask.ravel().astype(bool)
-    return int(mask.sum()), mask
+    inliers = np.asarray(f_mask).ravel().astype(bool)
+    return int(inliers.sum()), inliers

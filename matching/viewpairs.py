@@ -62,8 +62,10 @@ def score_view_pairs(ctx: MatchContext, ref: int) -> list[PairScore]:
     seed = ctx.cfg.seed
 
     def feats(side: int, n: int) -> dict[ViewParams, Features]:
-        return dict(zip(views, ctx.map(lambda v: strongest(coarse_view_features(ctx.store, ctx.names[side], v, cc), n),
-                                       views)))
+        def one(v: ViewParams) -> Features:
+            return strongest(coarse_view_features(ctx.store, ctx.names[side], v, cc), n)
+
+        return dict(zip(views, ctx.map(one, views), strict=True))
 
     fa, fb = feats(ref, cfg.pair_orb), feats(1 - ref, cfg.pair_orb)
     rows = ctx.map(lambda a: [score_pair(fa[a], fb[b], a, b, cc.ratio, cc.ransac_px, seed) for b in views], views)

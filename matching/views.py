@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import cv2
 import numpy as np
@@ -115,7 +115,7 @@ def view_affine(size: tuple[int, int], view: ViewParams) -> tuple[NDArray[np.flo
 
 
 def invert_affine(A: NDArray[np.float64]) -> NDArray[np.float64]:
-    return cv2.invertAffineTransform(A.astype(np.float64))
+    return cast(NDArray[np.float64], cv2.invertAffineTransform(A.astype(np.float64)))
 
 
 def apply_affine(A: NDArray[np.float64], pts: NDArray) -> NDArray[np.float32]:
@@ -195,4 +195,4 @@ def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest
     mask = cv2.warpAffine(ones, A, (ow, oh), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if mask_erode_px > 0:
         mask = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * mask_erode_px + 1,) * 2))
-    return SimulatedView(view, out, mask, A)
+    return SimulatedView(view, cast(NDArray[np.uint8], out), cast(NDArray[np.uint8], mask), A)

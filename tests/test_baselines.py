@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -45,7 +47,7 @@ def test_make_baseline_configs():
         make_baseline("sift", trees=3)
     with pytest.raises(ValueError, match="unknown baseline"):
         make_baseline("surf")
-    with pytest.raises(Exception):  # frozen config
+    with pytest.raises(dataclasses.FrozenInstanceError):  # frozen config
         m.cfg.ratio = 0.5  # type: ignore[misc]
 
 

@@ -55,7 +55,8 @@ def test_every_opencv_rng_seed_in_a_match_is_the_configured_seed(monkeypatch):
     store.add_image("a", img)
     store.add_image("b", warped)
     small = views.GridConfig(n=1)
-    esc = escalation.EscalationConfig(min_inliers=10**6, two_sided_grid=views.GridConfig(n=1, ds=0.0, scale_mode="none"))
+    esc = escalation.EscalationConfig(min_inliers=10**6,
+                                      two_sided_grid=views.GridConfig(n=1, ds=0.0, scale_mode="none"))
     planar = ExtraAffineMatcher(MatcherConfig(seed=7, workers=1, grid=small, escalation=esc)).match(store, "a", "b")
     assert "escalation" in planar.timings and planar.num_matches > 0  # every level ran
     n_planar = len(seen)

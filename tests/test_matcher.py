@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import matching
-
 from matching.io import load_gray, read_homography
 from matching.matcher import ExtraAffineMatcher, MatcherConfig
 from matching.metrics import precision

@@ -161,6 +161,6 @@ def test_gt_reference_direction_on_real_zoom(shared_data):
     p1 = np.array([k1[m.trainIdx].pt for m in good])
     ok = reprojection_errors(H, p0, p1) <= 3
     assert ok.sum() >= 10
-    size_ratio = np.median([k1[m.trainIdx].size / k0[m.queryIdx].size for m, o in zip(good, ok) if o])
+    size_ratio = np.median([k1[m.trainIdx].size / k0[m.queryIdx].size for m, o in zip(good, ok, strict=True) if o])
     assert size_ratio == pytest.approx(2.0, rel=0.25)
     assert gt_reference(H, (256, 256)) == 1

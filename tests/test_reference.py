@@ -7,8 +7,16 @@ import numpy as np
 import pytest
 
 from matching.features import DetectorConfig, detect
-from matching.reference import (ReferenceConfig, ReferenceDecision, choose_reference, larger_image, paper_coefficient,
-                                reason_for, reference_from_final_homography, settle_reference)
+from matching.reference import (
+    ReferenceConfig,
+    ReferenceDecision,
+    choose_reference,
+    larger_image,
+    paper_coefficient,
+    reason_for,
+    reference_from_final_homography,
+    settle_reference,
+)
 from matching.types import CoarseScore, PairResult, ViewParams
 
 SIZE0 = (801, 601)  # (w, h) of image 0: centre (400, 300)
@@ -20,7 +28,8 @@ def test_paper_coefficient_sign_follows_segment_lengths():
     assert paper_coefficient(a * 2, a, d) > 0  # source segments longer: source is more detailed
     assert paper_coefficient(a, a * 2, d) < 0
     # descriptor distances weight the terms down (1 - (d_i + d_i+1) / 1000)
-    assert paper_coefficient(a * 2, a, np.full(3, 250, np.float32)) == pytest.approx(0.5 * paper_coefficient(a * 2, a, d))
+    weighted = paper_coefficient(a * 2, a, np.full(3, 250, np.float32))
+    assert weighted == pytest.approx(0.5 * paper_coefficient(a * 2, a, d))
 
 
 def _zoom_pair(img: np.ndarray, zoom: float) -> tuple[np.ndarray, np.ndarray]:

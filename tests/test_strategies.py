@@ -18,8 +18,19 @@ from matching.matcher import ExtraAffineMatcher, decide_reference
 from matching.metrics import precision, precision_of_points
 from matching.reference import settle_reference
 from matching.store import FeatureStore
-from matching.strategies import (ESCALATION, FINISHING, FinalHomography, GuidedEpipolar, GuidedHomography,
-                                 ReferenceFromFinalHomography, Swap, TopK, TwoSided, ViewPairs, fast_path)
+from matching.strategies import (
+    ESCALATION,
+    FINISHING,
+    FinalHomography,
+    GuidedEpipolar,
+    GuidedHomography,
+    ReferenceFromFinalHomography,
+    Swap,
+    TopK,
+    TwoSided,
+    ViewPairs,
+    fast_path,
+)
 from matching.views import GridConfig
 
 # small grids keep the two-sided levels to a few seconds on graf
