@@ -201,13 +201,14 @@ def reason_for(decision: ReferenceDecision, reference: int) -> str:
     return f"{decision.reason}; chose image {reference} by coarse score"
 
 
-def reference_from_final_homography(result: PairResult, min_inliers: int) -> PairResult:
+def reference_from_final_homography(result: PairResult, image0_size: tuple[int, int], min_inliers: int) -> PairResult:
     """Step 3 of the module doc: for a result whose level simulated both images, neither was "the"
     reference; report the one the verified final homography `result.H_1_from_0` says is larger
-    (at image 0's centre). Unchanged when it has fewer than `min_inliers` inliers or no scale."""
-    if result.H_1_from_0 is None or result.image_sizes is None:
+    (at the centre of image 0, of `image0_size` (w, h)). Unchanged when it has fewer than
+    `min_inliers` inliers or no scale."""
+    if result.H_1_from_0 is None:
         return result
-    scale = scale_1_from_0(result.H_1_from_0, result.image_sizes[0])
+    scale = scale_1_from_0(result.H_1_from_0, image0_size)
     if not math.isfinite(scale) or result.num_inliers < min_inliers:
         return result
     ref = 0 if scale <= 1.0 else 1

@@ -172,7 +172,7 @@ class ReferenceFromFinalHomography:
         return att.both_simulated and res.H_1_from_0 is not None
 
     def run(self, ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
-        return reference_from_final_homography(res, ctx.cfg.escalation.min_inliers)
+        return reference_from_final_homography(res, ctx.size(0), ctx.cfg.escalation.min_inliers)
 
 
 FINISHING: tuple[Finishing, ...] = (FinalHomography(), GuidedHomography(), GuidedEpipolar(),

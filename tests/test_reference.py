@@ -134,15 +134,14 @@ def _two_sided_result(scale: float, n_inliers: int) -> PairResult:
     z = np.zeros((40, 2), np.float32)
     return PairResult("extra-affine", z, z.copy(), np.stack([np.arange(40)] * 2, 1).astype(np.int32),
                       np.zeros(40, np.float32), reference=0, reference_reason="undecided",
-                      H_1_from_0=_zoom_about_centre(scale), inlier_mask=np.arange(40) < n_inliers,
-                      image_sizes=(SIZE0, SIZE0))
+                      H_1_from_0=_zoom_about_centre(scale), inlier_mask=np.arange(40) < n_inliers)
 
 
 def test_reference_from_the_final_homography():
-    res = reference_from_final_homography(_two_sided_result(1.6, 35), min_inliers=30)
+    res = reference_from_final_homography(_two_sided_result(1.6, 35), SIZE0, min_inliers=30)
     assert res.reference == 1
     assert res.reference_reason == "undecided; both images simulated, final homography: image 1 is 1.60x larger"
-    res = reference_from_final_homography(_two_sided_result(1 / 1.6, 35), min_inliers=30)
+    res = reference_from_final_homography(_two_sided_result(1 / 1.6, 35), SIZE0, min_inliers=30)
     assert res.reference == 0 and res.reference_reason.endswith("image 0 is 1.60x larger")
-    weak = reference_from_final_homography(_two_sided_result(1.6, 20), min_inliers=30)  # too few inliers
+    weak = reference_from_final_homography(_two_sided_result(1.6, 20), SIZE0, min_inliers=30)  # too few inliers
     assert weak.reference == 0 and weak.reference_reason == "undecided"

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from matching.config import MatcherConfig
+from matching.context import Attempt, MatchContext
 from matching.escalation import should_escalate
-from matching.fine import epipolar_pair_distance
+from matching.fine import FineMatches, epipolar_pair_distance
+from matching.geometry import scale_1_from_0
 from matching.guided import trusted_fundamental
 from matching.io import load_gray, read_homography
 from matching.matcher import ExtraAffineMatcher, decide_reference
@@ -185,3 +187,21 @@ def test_finishing_steps_are_in_order():
     names = [type(s).__name__ for s in FINISHING]
     assert names == ["FinalHomography", "GuidedHomography", "GuidedEpipolar", "ReferenceFromFinalHomography"]
     assert [lvl.label for lvl in ESCALATION] == ["topk", "swap", "pairs", "two-sided"]
+
+
+def test_reference_from_final_homography_reads_image_0s_size_from_the_store():
+    """Images of different sizes, image 1 simulated: the scale is read at image 0's centre (the
+    result's `image_sizes` are not what this step trusts)."""
+    store = FeatureStore()
+    store.add_image("a", np.zeros((100, 200), np.uint8))
+    store.add_image("b", np.zeros((300, 400), np.uint8))
+    ctx = MatchContext(store, ("a", "b"), MatcherConfig(), views=[])
+    H = np.array([[1.0, 0, 0], [0, 1.0, 0], [-0.004, 0, 1.6]])  # < 1 at a's centre, > 1 at b's
+    assert scale_1_from_0(H, (200, 100)) < 1 < scale_1_from_0(H, (400, 300))
+    k = np.zeros((40, 2), np.float32)
+    fm = FineMatches(k, k.copy(), np.stack([np.arange(40)] * 2, 1).astype(np.int32), np.zeros(40, np.float32), {})
+    att = Attempt("two-sided", 1, fm, [], [], 40, both_simulated=True)
+    res = ctx.to_result(att)
+    res.H_1_from_0, res.inlier_mask = H, np.ones(40, bool)
+    out = ReferenceFromFinalHomography().run(ctx, att, res)
+    assert out.reference == 0 and out.reference_reason.endswith("image 0 is 1.04x larger")
