@@ -37,7 +37,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -58,37 +60,54 @@ FLANN_INDEX_KDTREE = 1
 class BaselineConfig:
     """Matching and final-filter settings shared by every baseline."""
 
-    ratio: float = 0.75  # nearest / second-nearest descriptor distance ratio
-    final_homography: bool = True  # fit a RANSAC homography and flag its inliers
-    # RANSAC reprojection threshold, pixels of image 1. 5 px is OpenCV's asift sample (stock).
-    # Precision depends strongly on it: SIFT on graf 1-2 gives 99 % at 1 px, 88-95 % at 1.5 px,
-    # 86 % at 3 px, while the number of correct matches barely changes.
+    ratio: float = 0.75
+    """Nearest / second-nearest descriptor distance ratio."""
+    final_homography: bool = True
+    """Fit a RANSAC homography and flag its inliers."""
     ransac_px: float = 5.0
+    """RANSAC reprojection threshold, px of image 1. 5 px is OpenCV's asift sample (stock);
+    precision depends strongly on it while the number of correct matches barely changes
+    (docs/decisions.md)."""
     ransac_iters: int = 10000
+    """RANSAC iterations at most."""
     ransac_confidence: float = 0.999
-    min_inliers: int = 10  # fewer RANSAC inliers than this: result kept, `reason` says "weak"
-    seed: int = 0  # seeds OpenCV's RNG before FLANN index building and RANSAC
+    """RANSAC confidence."""
+    min_inliers: int = 10
+    """Fewer RANSAC inliers than this: result kept, `reason` says "weak"."""
+    seed: int = 0
+    """Seeds OpenCV's RNG before FLANN index building and RANSAC."""
 
 
 @dataclass(frozen=True)
 class SiftConfig(BaselineConfig):
-    max_features: int = 0  # 0 = unlimited
+    """SIFT, ratio test, RANSAC."""
+
+    max_features: int = 0
+    """SIFT budget per image (0 = unlimited)."""
 
 
 @dataclass(frozen=True)
 class OrbConfig(BaselineConfig):
+    """ORB, ratio test, RANSAC."""
+
     max_features: int = 1000
-    fast_threshold: int = 20  # OpenCV's default: the plain ORB baseline
+    """ORB budget per image."""
+    fast_threshold: int = 20
+    """FAST threshold (OpenCV's default: the plain ORB baseline)."""
 
 
 @dataclass(frozen=True)
 class AffineConfig(BaselineConfig):
     """AffineFeature view sampling (OpenCV's defaults = the ASIFT paper's)."""
 
-    max_tilt: int = 5  # highest power index k of the tilt t = tilt_step^k
+    max_tilt: int = 5
+    """Highest power index k of the tilt t = tilt_step^k."""
     min_tilt: int = 0
+    """Lowest power index k of the tilt."""
     tilt_step: float = math.sqrt(2.0)
-    rotate_step_base: float = 72.0  # longitude step b / t, degrees
+    """Tilt ratio between levels."""
+    rotate_step_base: float = 72.0
+    """Longitude step b / t, degrees."""
 
     @property
     def view_key(self) -> str:
@@ -97,15 +116,24 @@ class AffineConfig(BaselineConfig):
 
 @dataclass(frozen=True)
 class AsiftConfig(AffineConfig):
-    max_features: int = 0  # per simulated view; 0 = unlimited
-    flann_trees: int = 5  # FLANN KD-tree, as OpenCV's samples/python/asift.py
+    """ASIFT as OpenCV's samples/python/asift.py: AffineFeature(SIFT), FLANN, ratio test, RANSAC."""
+
+    max_features: int = 0
+    """SIFT budget per simulated view (0 = unlimited)."""
+    flann_trees: int = 5
+    """FLANN KD-tree count (as OpenCV's samples/python/asift.py)."""
     flann_checks: int = 50
+    """FLANN leaf checks."""
 
 
 @dataclass(frozen=True)
 class AorbConfig(AffineConfig):
-    max_features: int = 1000  # per simulated view
+    """AffineFeature(ORB), brute-force Hamming ratio test, RANSAC."""
+
+    max_features: int = 1000
+    """ORB budget per simulated view."""
     fast_threshold: int = 20
+    """FAST threshold."""
 
 
 # helpers ----------------------------------------------------------------------------------------
@@ -189,6 +217,7 @@ class _Baseline:
                 result.reason = (f"only {len(matches)} ratio-test matches" if len(matches) < 4
                                  else f"RANSAC found no homography in {len(matches)} ratio-test matches")
             else:
+                assert mask is not None  # a model comes with its inlier mask
                 n_in = int(mask.sum())
                 if n_in < cfg.min_inliers:
                     result.reason = f"weak: only {n_in} RANSAC inliers of {len(matches)} matches"
@@ -199,6 +228,7 @@ class SiftMatcher(_Baseline):
     """Plain SIFT on both original images, L2 brute-force knn, ratio test, RANSAC."""
 
     name = "sift"
+    cfg: SiftConfig
 
     def __init__(self, cfg: SiftConfig = SiftConfig()):
         self.cfg = cfg
@@ -219,6 +249,7 @@ class OrbMatcher(_Baseline):
     """Plain ORB (1000 features), Hamming brute-force knn, ratio test, RANSAC."""
 
     name = "orb"
+    cfg: OrbConfig
 
     def __init__(self, cfg: OrbConfig = OrbConfig()):
         self.cfg = cfg
@@ -240,6 +271,7 @@ class AsiftMatcher(_Baseline):
     """ASIFT: AffineFeature(SIFT) on both images, FLANN KD-tree knn, ratio test, RANSAC."""
 
     name = "asift"
+    cfg: AsiftConfig
 
     def __init__(self, cfg: AsiftConfig = AsiftConfig()):
         self.cfg = cfg
@@ -266,6 +298,7 @@ class AorbMatcher(_Baseline):
     """AORB: AffineFeature(ORB) on both images, Hamming brute-force knn, ratio test, RANSAC."""
 
     name = "aorb"
+    cfg: AorbConfig
 
     def __init__(self, cfg: AorbConfig = AorbConfig()):
         self.cfg = cfg
@@ -285,7 +318,7 @@ class AorbMatcher(_Baseline):
         return cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(d0, d1, k=2)
 
 
-_CLASSES: dict[str, tuple[type[_Baseline], type[BaselineConfig]]] = {
+_CLASSES: dict[str, tuple[Callable[[Any], _Baseline], type[BaselineConfig]]] = {
     "sift": (SiftMatcher, SiftConfig),
     "orb": (OrbMatcher, OrbConfig),
     "asift": (AsiftMatcher, AsiftConfig),

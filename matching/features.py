@@ -19,11 +19,14 @@ DetectorName = Literal["sift", "orb"]
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Which detector and its budget. `max_features = 0` means unlimited (SIFT only)."""
+    """Which detector and its budget."""
 
     name: DetectorName = "sift"
+    """"sift" (float descriptors, L2) or "orb" (binary, Hamming)."""
     max_features: int = 0
-    root_sift: bool = False  # L1-normalise + sqrt SIFT descriptors (Arandjelovic 2012)
+    """Feature budget; 0 = unlimited (SIFT only; ORB then keeps 1000)."""
+    root_sift: bool = False
+    """L1-normalise and square-root SIFT descriptors (Arandjelovic 2012)."""
 
     @property
     def key(self) -> str:
@@ -48,7 +51,7 @@ class Features:
     def __len__(self) -> int:
         return int(len(self.kpts))
 
-    def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> "Features":
+    def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> Features:
         resp = None if self.responses is None else self.responses[keep]
         return Features(self.kpts[keep], self.sizes[keep], self.angles[keep], self.descriptors[keep], resp)
 
@@ -57,18 +60,28 @@ class Features:
         return int(self.kpts.nbytes + self.sizes.nbytes + self.angles.nbytes + self.descriptors.nbytes)
 
     @staticmethod
-    def empty(dim: int = 128, dtype=np.float32) -> "Features":
+    def empty(dim: int = 128, dtype=np.float32) -> Features:
         return Features(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
                         np.zeros(0, np.float32), np.zeros((0, dim), dtype))
+
+
+def strongest(f: Features, n: int) -> Features:
+    """The `n` features with the largest detector response (all of them when n = 0), in their
+    original order (the first `n` when responses are unknown)."""
+    if not n or len(f) <= n:
+        return f
+    if f.responses is None:
+        return f.subset(np.arange(n))
+    return f.subset(np.sort(np.argsort(-f.responses, kind="stable")[:n]))
 
 
 def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     """A fresh OpenCV detector (they are not thread-safe to share, so one per call)."""
     if cfg.name == "sift":
-        return cv2.SIFT_create(nfeatures=cfg.max_features)
+        return cv2.SIFT.create(nfeatures=cfg.max_features)
     if cfg.name == "orb":
         # fastThreshold lowered from 20 so low-contrast simulated views still yield keypoints
-        return cv2.ORB_create(nfeatures=cfg.max_features or 1000, fastThreshold=10)
+        return cv2.ORB.create(nfeatures=cfg.max_features or 1000, fastThreshold=10)
     raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift' or 'orb'")
 
 
@@ -78,9 +91,9 @@ _sift_gate = threading.BoundedSemaphore(1)
 def set_sift_concurrency(n: int) -> None:
     """How many SIFT detections may run at once in this process (default 1).
 
-    OpenCV's SIFT doubles its input and keeps ~11 float layers of it: ~120 MB for an 800 px
-    image, ~300 MB at 1600 px. It is already multi-threaded inside, so running two at once
-    gains only ~15 % (measured on graf, 2 cores) for twice the peak memory.
+    OpenCV's SIFT doubles its input and keeps ~11 float layers of it, and it is already
+    multi-threaded inside, so running two at once gains little time for twice the peak memory
+    (figures in docs/decisions.md).
     """
     global _sift_gate
     _sift_gate = threading.BoundedSemaphore(max(1, int(n)))

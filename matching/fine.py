@@ -5,6 +5,10 @@ detected in it and mapped back to the original reference image, and its descript
 ratio-matched against the target's SIFT. Several views (the top of the coarse search) can be
 fused: their matches are concatenated and made one-to-one on the target side, keeping the
 closest descriptor. The paper uses a single view (`top_k = 1`).
+
+Also here, the matching primitives of the second, guided rounds (`matching.guided`): ratio tests
+restricted to target keypoints near a homography's prediction (`guided_match`) or within a band
+around a fundamental matrix's epipolar line (`epipolar_guided_match`).
 """
 
 from __future__ import annotations
@@ -16,32 +20,33 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .coarse import original_features, view_features
 from .features import DetectorConfig
 from .matching_utils import ratio_match, unique_train
 from .store import FeatureStore
 from .types import CoarseScore, ViewParams
+from .viewfeatures import original_features, view_features
 from .views import Interp, capped_view
 
 
 @dataclass(frozen=True)
 class FineConfig:
-    """SIFT ratio (paper: 0.75), interpolation (paper: Lanczos) and anti-aliasing of the views.
-
-    `max_area_ratio` (> 0) caps a view's zoom so its area is at most that multiple of the
-    original's (see `views.capped_view`); 0 renders the paper's zoom s = 1 + k*ds in full.
-    Measured on graf 1-2..1-6 (two fused views, guided matching): the cap at 1.0 gives
-    1081/915/656/445/361 points at 96.6-99.8 % precision against 1081/901/685/441/368 at full
-    zoom, with SIFT's scale space (which doubles its input) on ~2x smaller images: less time and
-    about half the peak memory; on 1600 px photos the full zoom costs seconds per view.
-    """
+    """SIFT on the chosen views, re-rendered with care (paper: Lanczos, ratio 0.75)."""
 
     ratio: float = 0.75
+    """Lowe's ratio of the SIFT matches (paper: 0.75)."""
     interp: Interp = "lanczos"
+    """Warp interpolation of the fine views (paper: Lanczos, 8x8 kernel)."""
     antialias: bool = True
+    """ASIFT's blur along the compressed axis before compressing (`views.antialias_sigma`)."""
     root_sift: bool = False
+    """RootSIFT descriptors (L1-normalised, square-rooted), kept at OpenCV's L2 scale."""
     sift_features: int = 0
+    """SIFT budget per image or view (0 = unlimited)."""
     max_area_ratio: float = 1.0
+    """(> 0) caps a view's zoom so its area is at most that multiple of the original's
+    (`views.capped_view`); 0 renders the paper's zoom s = 1 + k*ds in full. The cap gives the
+    same points for less time and memory: SIFT's scale space doubles its input
+    (docs/decisions.md)."""
 
     @property
     def detector(self) -> DetectorConfig:
@@ -82,7 +87,9 @@ def select_fine_views(ranked: list[CoarseScore], k: int, include_original: bool 
 
 
 def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParams],
-               cfg: FineConfig, executor: Executor | None = None) -> FineMatches:
+               cfg: FineConfig, executor: Executor | None = None, seed: int = 0) -> FineMatches:
+    """SIFT of each view of `ref` ratio-matched against the original `target`, fused one-to-one
+    on the target side (closest descriptor wins); `seed` seeds FLANN for large sets."""
     det = cfg.detector
     ft = original_features(store, target, det)
 
@@ -90,13 +97,13 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
 
     def one(view: ViewParams):
         fv = view_features(store, ref, capped_view(view, size, cfg.max_area_ratio), det, cfg.interp, cfg.antialias)
-        m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio)
+        m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio, seed)
         return fv, m, d
 
     parts = list(executor.map(one, views)) if executor is not None and len(views) > 1 else [one(v) for v in views]
     kpts_ref, matches, dists, per_view = [], [], [], {}
     offset = 0
-    for view, (fv, m, d) in zip(views, parts):
+    for view, (fv, m, d) in zip(views, parts, strict=True):
         per_view[view.key] = int(len(m))
         if len(m):
             used = np.unique(m[:, 0])
@@ -200,7 +207,8 @@ def guided_match(kpts_q: NDArray, desc_q: NDArray, kpts_t: NDArray, desc_t: NDAr
 def _epipolar_lines(F_t_from_q: NDArray[np.float64], pts_q: NDArray) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """((N, 3) lines F x of the query points, normalised so that a·x + b·y + c is a distance in
     target pixels; (N,) mask of the points whose line is defined). x_tᵀ F x_q = 0."""
-    lines = np.c_[np.asarray(pts_q, np.float64).reshape(-1, 2), np.ones(len(pts_q))] @ np.asarray(F_t_from_q, np.float64).T
+    pts = np.asarray(pts_q, np.float64).reshape(-1, 2)
+    lines = np.c_[pts, np.ones(len(pts))] @ np.asarray(F_t_from_q, np.float64).T
     norm = np.hypot(lines[:, 0], lines[:, 1])
     valid = norm > 0
     return lines / np.where(valid, norm, np.inf)[:, None], valid

@@ -9,6 +9,7 @@ non-ASCII characters work on every platform.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -68,7 +69,7 @@ def _to_u8(img: NDArray) -> NDArray[np.uint8]:
 def to_bgr_u8(img: NDArray) -> NDArray[np.uint8]:
     """Any decoded image as 8-bit 3-channel BGR (for drawing and colouring points)."""
     if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
-        return cv2.cvtColor(to_gray_u8(img), cv2.COLOR_GRAY2BGR)
+        return cast(NDArray[np.uint8], cv2.cvtColor(to_gray_u8(img), cv2.COLOR_GRAY2BGR))
     if img.dtype != np.uint8:
         img = _to_u8(img)
     if img.shape[2] == 4:

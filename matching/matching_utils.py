@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-
 FLANN_MIN_SIZE = 1500  # brute force below this many descriptors on either side
 
 
@@ -15,9 +14,8 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
     """Lowe's ratio test: (K, 2) (query, train) indices and the nearest distances.
 
     Brute force (exact) for small sets, such as ORB 1000 or the 1000 strongest SIFT; a seeded
-    FLANN k-d forest for float descriptors when both sides exceed `flann_min_size` (10k x 10k
-    SIFT of 1600 px photos: brute force ~1 s, FLANN ~0.15 s, with >97 % of the same matches;
-    2700 x 2700 on graf: 65 ms against 50 ms).
+    FLANN k-d forest for float descriptors when both sides exceed `flann_min_size`, where it is
+    several times faster with nearly the same matches (docs/decisions.md).
     OpenCV's per-thread RNG is seeded just before the index is built, so results are
     deterministic whichever thread runs them.
     """
@@ -49,7 +47,8 @@ def ratio_filter(knn, ratio: float) -> tuple[NDArray[np.int32], NDArray[np.float
     return np.asarray(out, np.int32), np.asarray(dist, np.float32)
 
 
-def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]
+                 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Keep, for every train index, only its closest query (one-to-one on the train side)."""
     if len(matches) == 0:
         return matches, dist
@@ -61,15 +60,28 @@ def unique_train(matches: NDArray[np.int32], dist: NDArray[np.float32]) -> tuple
     return matches[keep], dist[keep]
 
 
+def dedupe_by_location(kpts_a: NDArray, kpts_b: NDArray, matches: NDArray[np.int32], dist: NDArray,
+                       cell_px: float = 1.5) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Drop matches whose (point a, point b) repeat within `cell_px` (the same point found in
+    several views); keeps the closest descriptor of each group."""
+    if len(matches) == 0:
+        return matches, dist
+    key = np.concatenate([np.floor(kpts_a[matches[:, 0]] / cell_px), np.floor(kpts_b[matches[:, 1]] / cell_px)], axis=1)
+    order = np.argsort(dist, kind="stable")
+    _, first = np.unique(key[order], axis=0, return_index=True)
+    keep = np.sort(order[first])
+    return matches[keep], dist[keep]
+
+
 def ransac_homography(pts0: NDArray, pts1: NDArray, thresh_px: float, seed: int = 0,
                       max_iters: int = 10000, confidence: float = 0.999,
                       ) -> tuple[NDArray[np.float64] | None, NDArray[np.bool_]]:
     """H_1_from_0 and its inlier mask by RANSAC with Levenberg-Marquardt refinement (seeded).
 
-    OpenCV's classic RANSAC, not USAC-MAGSAC++: on graf 1-3 with 1000 fine matches MAGSAC's
-    model at 1.5 px kept 532 inliers of which 94 % were correct, RANSAC kept 709 with 99.9 %.
-    The seed is applied to OpenCV's per-thread RNG just before the call, so results do not
-    depend on which thread runs the pair. Returns (None, all False) below 4 correspondences.
+    OpenCV's classic RANSAC, not USAC-MAGSAC++: at a tight threshold MAGSAC's model kept fewer
+    and less precise inliers on graf (docs/decisions.md). The seed is applied to OpenCV's
+    per-thread RNG just before the call, so results do not depend on which thread runs the pair.
+    Returns (None, all False) below 4 correspondences.
     """
     n = len(pts0)
     if n < 4:

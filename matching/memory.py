@@ -3,14 +3,13 @@
 The one memory helper of the project: `return_large_buffers_to_os` (below), `PeakRss` (peak
 resident growth during a block, sampled) and `peak_rss_mb` (the process's peak so far).
 
-glibc serves large allocations (OpenCV's image pyramids, SIFT's scale space: ~120 MB for an
-800 px image) with mmap only above a threshold that *grows* to the largest block freed so far;
-after the first SIFT, its buffers come from per-thread heap arenas and stay resident once
-freed, so with view threads each holding an arena the resident peak of a graf pair grew from
-123 MB (one thread) to 197 MB (two). Pinning the threshold keeps large buffers mmapped and
-returned on free. Measured on graf 1-2..1-6 (median time per pair / peak of 1-4):
-unpinned 0.95 s / 197 MB; 1 MB 1.15 s / 140 MB (page faults on every fresh buffer);
-4 MB (default: SIFT's first-octave layers of an 800 px image are 8 MB) 1.07 s / 149 MB.
+glibc serves large allocations (OpenCV's image pyramids, SIFT's scale space) with mmap only
+above a threshold that *grows* to the largest block freed so far; after the first SIFT, its
+buffers come from per-thread heap arenas and stay resident once freed, so with view threads
+each holding an arena the resident peak grows with the threads. Pinning the threshold keeps
+large buffers mmapped and returned on free, for a little time (page faults on fresh buffers);
+4 MB (the default) sits below SIFT's first-octave layers of an 800 px image. Figures in
+docs/decisions.md.
 """
 
 from __future__ import annotations

@@ -19,7 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .geometry import image_centre, local_scale, scale_1_from_0
 from .types import PairResult
+
+__all__ = [
+    "DEFAULT_TH", "SAME_SCALE_TOL", "PrecisionReport", "gt_reference", "image_centre", "inlier_ratio", "local_scale",
+    "precision", "precision_of_points", "project", "reference_correct", "reprojection_errors",
+]
 
 DEFAULT_TH = math.sqrt(3.0)  # paper's default Th: the 3x3 pixel neighbourhood of the true point
 SAME_SCALE_TOL = 1.1  # local scales within this factor: either image is an acceptable reference
@@ -95,40 +101,19 @@ def inlier_ratio(result: PairResult) -> float:
     return result.num_inliers / n if n else 0.0
 
 
-def local_scale(H: ArrayLike, at_xy: ArrayLike) -> float:
-    """|det J| of the homography H at the point (x, y): the local area scale of the mapping.
-
-    For x' = (A x + t) / w with w = g.x + h33, det J = det(H) / w^3 (invariant to the scale of
-    H). Below 1: a small patch around (x, y) shrinks when mapped; above 1: it grows.
-    Returns inf when (x, y) maps to infinity.
-    """
-    H = np.asarray(H, np.float64)
-    x, y = (float(v) for v in np.asarray(at_xy, np.float64).ravel()[:2])
-    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-    if abs(w) < 1e-15:
-        return math.inf
-    return float(abs(np.linalg.det(H) / w**3))
-
-
-def image_centre(size: tuple[int, int]) -> tuple[float, float]:
-    """Centre of a (width, height) image in OpenCV pixel coordinates."""
-    w, h = size
-    return ((w - 1) / 2.0, (h - 1) / 2.0)
-
-
 def gt_reference(H_1_from_0: ArrayLike, size0: tuple[int, int], tol: float = SAME_SCALE_TOL) -> int | None:
     """Which image the ground truth says is the reference (more detailed) one: 0, 1 or None.
 
-    With s = local_scale(H_1_from_0, centre of image 0) (`size0` = (width, height)): s < 1
+    With s = `geometry.scale_1_from_0(H_1_from_0, size0)` (`size0` = (width, height)): s < 1
     means image 0 shrinks when mapped into image 1, i.e. the same surface covers more pixels
-    in image 0, whose camera is closer / more frontal: image 0 is the reference (METHOD.md,
-    "Choosing the reference image"). s > 1: image 1. When |log s| < log(tol) (area scales
-    within 10 % by default) both choices are acceptable and None is returned.
+    in image 0, whose camera is closer / more frontal: image 0 is the reference (the rule
+    `matching.reference` applies too). s > 1: image 1. When the *area* scales s^2 are within
+    `tol` (10 % by default) both choices are acceptable and None is returned.
     """
-    s = local_scale(H_1_from_0, image_centre(size0))
-    if not math.isfinite(s) or s <= 0:
+    s = scale_1_from_0(H_1_from_0, size0)
+    if not math.isfinite(s):
         return None
-    if abs(math.log(s)) < math.log(tol):
+    if abs(2.0 * math.log(s)) < math.log(tol):
         return None
     return 0 if s < 1 else 1
 

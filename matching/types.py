@@ -100,9 +100,9 @@ class PairResult:
             m = m[self.inlier_mask]
         return self.kpts0[m[:, 0]], self.kpts1[m[:, 1]]
 
-    def swapped(self) -> "PairResult":
+    def swapped(self) -> PairResult:
         """The same result seen from image 1 (image indices and directions exchanged)."""
-        H = None if self.H_1_from_0 is None else np.linalg.inv(self.H_1_from_0)
+        H = None if self.H_1_from_0 is None else np.asarray(np.linalg.inv(self.H_1_from_0), np.float64)
         ref: Reference | None = None if self.reference is None else (1 - self.reference)  # type: ignore[assignment]
         sizes = None if self.image_sizes is None else (self.image_sizes[1], self.image_sizes[0])
         return PairResult(
@@ -115,7 +115,7 @@ class PairResult:
         )
 
     @staticmethod
-    def empty(method: str, reason: str, **kw) -> "PairResult":
+    def empty(method: str, reason: str, **kw) -> PairResult:
         z2 = np.zeros((0, 2), np.float32)
         return PairResult(method=method, kpts0=z2, kpts1=z2.copy(),
                           matches=np.zeros((0, 2), np.int32),

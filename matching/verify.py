@@ -11,14 +11,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .geometry import homography_jacobian
 from .matching_utils import ransac_homography
-
-
-def homography_jacobian(H: NDArray[np.float64], pt: NDArray) -> NDArray[np.float64]:
-    """2x2 Jacobian of the homography `H` at `pt` (x, y) in pixels: its local affine."""
-    q = H @ np.array([pt[0], pt[1], 1.0])
-    w = q[2]
-    return (H[:2, :2] * w - np.outer(q[:2], H[2, :2])) / (w * w)
 
 
 def plausible_homography(H: NDArray[np.float64] | None, pts_a: NDArray, max_anisotropy: float = 40.0,
@@ -28,8 +22,8 @@ def plausible_homography(H: NDArray[np.float64] | None, pts_a: NDArray, max_anis
     Checks at the four corners of the bounding box of `pts_a` (the matched region): the
     projective depth w stays positive (the horizon does not cross the region), the local affine
     keeps orientation (det > 0: no mirror), its area scale is within [1/max_scale^2, max_scale^2]
-    and its anisotropy (singular value ratio; the transition tilt, ~22 on the hardest EVD pair)
-    stays below `max_anisotropy`.
+    and its anisotropy (singular value ratio: the transition tilt) stays below `max_anisotropy`
+    (above the hardest EVD pair's, docs/decisions.md).
     """
     if H is None or len(pts_a) < 4:
         return False
@@ -62,9 +56,9 @@ def verify_matches(pts_a: NDArray, pts_b: NDArray, model: str, seed: int = 0,
     if n < 8:
         return 0, np.zeros(n, bool)
     cv2.setRNGSeed(seed)
-    F, mask = cv2.findFundamentalMat(np.asarray(pts_a, np.float32), np.asarray(pts_b, np.float32),
-                                     cv2.USAC_MAGSAC, f_thresh_px, 0.999, 10000)
-    if F is None or mask is None:
+    F, f_mask = cv2.findFundamentalMat(np.asarray(pts_a, np.float32), np.asarray(pts_b, np.float32),
+                                       cv2.USAC_MAGSAC, f_thresh_px, 0.999, 10000)
+    if F is None or f_mask is None:
         return 0, np.zeros(n, bool)
-    mask = mask.ravel().astype(bool)
-    return int(mask.sum()), mask
+    inliers = np.asarray(f_mask).ravel().astype(bool)
+    return int(inliers.sum()), inliers

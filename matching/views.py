@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import cv2
 import numpy as np
@@ -27,22 +27,25 @@ _CV_INTERP = {"nearest": cv2.INTER_NEAREST, "linear": cv2.INTER_LINEAR,
 
 @dataclass(frozen=True)
 class GridConfig:
-    """The paper's sampling (§III-B): t = a^k (k = 0..n), phi = j*b/t < 180 deg, s = 1 + k*ds.
-
-    `scale_mode`: "tied" is the paper's s = 1 + k*ds (one scale per tilt); "none" keeps s = 1
-    (the paper's ds = 0 ablation); "cap" is "tied" but limits the zoom so the view's area is at
-    most `max_area_ratio` times the original's (the paper's zoom grows the simulated area as
-    s^2/t, 2.2x at k = 5, which costs time for no measured precision gain).
-    `min_tilt_index` lets escalation simulate only the steep part of the grid.
-    """
+    """The paper's sampling (§III-B): t = a^k (k = 0..n), phi = j*b/t < 180 deg, s = 1 + k*ds."""
 
     a: float = math.sqrt(2.0)
+    """Tilt ratio between grid levels (> 1)."""
     n: int = 5
+    """Highest tilt index: tilts up to a^n (5.66 with the defaults)."""
     b: float = 72.0
+    """Longitude step at t = 1, degrees; the step at tilt t is b / t."""
     ds: float = 0.5
+    """Zoom step per tilt level: s = 1 + k*ds."""
     scale_mode: Literal["tied", "none", "cap"] = "tied"
+    """"tied" is the paper's s = 1 + k*ds (one scale per tilt); "none" keeps s = 1 (the paper's
+    ds = 0 ablation); "cap" is "tied" but limits the zoom so the view's area is at most
+    `max_area_ratio` times the original's (the paper's zoom grows the simulated area as s^2/t,
+    2.2x at k = 5)."""
     max_area_ratio: float = 1.0
+    """The area cap of `scale_mode` "cap", as a multiple of the original's area."""
     min_tilt_index: int = 0
+    """First tilt index of the grid (lets a level simulate only the steep part of the grid)."""
 
     def __post_init__(self) -> None:
         if self.a <= 1.0:
@@ -112,7 +115,7 @@ def view_affine(size: tuple[int, int], view: ViewParams) -> tuple[NDArray[np.flo
 
 
 def invert_affine(A: NDArray[np.float64]) -> NDArray[np.float64]:
-    return cv2.invertAffineTransform(A.astype(np.float64))
+    return cast(NDArray[np.float64], cv2.invertAffineTransform(A.astype(np.float64)))
 
 
 def apply_affine(A: NDArray[np.float64], pts: NDArray) -> NDArray[np.float32]:
@@ -192,4 +195,4 @@ def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest
     mask = cv2.warpAffine(ones, A, (ow, oh), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if mask_erode_px > 0:
         mask = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * mask_erode_px + 1,) * 2))
-    return SimulatedView(view, out, mask, A)
+    return SimulatedView(view, cast(NDArray[np.uint8], out), cast(NDArray[np.uint8], mask), A)

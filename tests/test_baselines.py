@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
 from matching.baselines import AsiftConfig, make_baseline
 from matching.io import load_gray, read_homography
 from matching.metrics import precision
 from matching.registry import get_matcher
 from matching.store import FeatureStore
-
-GRAF = SHARED_DATA / "oxford" / "graf"
-needs_data = pytest.mark.requires_shared("oxford/graf/img1.png", "oxford/graf/H1to2p")
 
 
 def _store(img0, img1) -> FeatureStore:
@@ -24,9 +22,10 @@ def _store(img0, img1) -> FeatureStore:
     return s
 
 
-def _graf(k: int, half: bool = False):
-    a, b = load_gray(GRAF / "img1.png"), load_gray(GRAF / f"img{k}.png")
-    H = read_homography(GRAF / f"H1to{k}p")
+def _graf(shared_data, k: int, half: bool = False):
+    graf = shared_data / "oxford" / "graf"
+    a, b = load_gray(graf / "img1.png"), load_gray(graf / f"img{k}.png")
+    H = read_homography(graf / f"H1to{k}p")
     if half:  # INTER_AREA halving; pixel centres: x_half = (x + 0.5) / 2 - 0.5
         S = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1.0]])
         a, b = (cv2.resize(x, (x.shape[1] // 2, x.shape[0] // 2), interpolation=cv2.INTER_AREA) for x in (a, b))
@@ -35,8 +34,8 @@ def _graf(k: int, half: bool = False):
 
 
 @pytest.fixture(scope="module")
-def graf13_asift():
-    a, b, H = _graf(3)
+def graf13_asift(shared_data):
+    a, b, H = _graf(shared_data, 3)
     return make_baseline("asift").match(_store(a, b), "a", "b"), H
 
 
@@ -48,7 +47,7 @@ def test_make_baseline_configs():
         make_baseline("sift", trees=3)
     with pytest.raises(ValueError, match="unknown baseline"):
         make_baseline("surf")
-    with pytest.raises(Exception):  # frozen config
+    with pytest.raises(dataclasses.FrozenInstanceError):  # frozen config
         m.cfg.ratio = 0.5  # type: ignore[misc]
 
 
@@ -71,9 +70,8 @@ def test_featureless_pair_is_empty_not_an_error(method):
     assert set(r.timings) >= {"detect", "total"}
 
 
-@needs_data
-def test_sift_graf_1_2():
-    a, b, H = _graf(2)
+def test_sift_graf_1_2(shared_data):
+    a, b, H = _graf(shared_data, 2)
     r = make_baseline("sift").match(_store(a, b), "a", "b")
     rep = precision(r, H)
     assert r.H_1_from_0 is not None and r.inlier_mask is not None
@@ -88,25 +86,22 @@ def test_sift_graf_1_2():
     assert r.reference is None and r.image_sizes == ((800, 640), (800, 640))
 
 
-@needs_data
-def test_orb_graf_1_2():
-    a, b, H = _graf(2)
+def test_orb_graf_1_2(shared_data):
+    a, b, H = _graf(shared_data, 2)
     r = make_baseline("orb").match(_store(a, b), "a", "b")
     rep = precision(r, H)
     assert rep.correct >= 100 and rep.precision >= 0.6
 
 
-@needs_data
-def test_final_homography_off_keeps_all_ratio_matches():
-    a, b, _ = _graf(2, half=True)
+def test_final_homography_off_keeps_all_ratio_matches(shared_data):
+    a, b, _ = _graf(shared_data, 2, half=True)
     r = make_baseline("sift", final_homography=False).match(_store(a, b), "a", "b")
     assert r.H_1_from_0 is None and r.inlier_mask is None and r.num_inliers == r.num_matches > 0
     assert "ransac" not in r.timings
 
 
-@needs_data
-def test_features_come_from_the_store():
-    a, b, _ = _graf(2, half=True)
+def test_features_come_from_the_store(shared_data):
+    a, b, _ = _graf(shared_data, 2, half=True)
     store = _store(a, b)
     m = make_baseline("sift")
     r1 = m.match(store, "a", "b")
@@ -116,11 +111,10 @@ def test_features_come_from_the_store():
     assert r2.num_matches > 0 and r1.num_matches > 0
 
 
-@needs_data
 @pytest.mark.slow
-def test_asift_beats_sift_on_graf_1_3(graf13_asift):
+def test_asift_beats_sift_on_graf_1_3(shared_data, graf13_asift):
     r_asift, H = graf13_asift
-    a, b, _ = _graf(3)
+    a, b, _ = _graf(shared_data, 3)
     r_sift = make_baseline("sift").match(_store(a, b), "a", "b")
     c_asift, c_sift = precision(r_asift, H).correct, precision(r_sift, H).correct
     assert c_asift > c_sift
@@ -128,11 +122,10 @@ def test_asift_beats_sift_on_graf_1_3(graf13_asift):
     assert r_asift.H_1_from_0 is not None
 
 
-@needs_data
 @pytest.mark.slow
-def test_asift_is_deterministic():
+def test_asift_is_deterministic(shared_data):
     """Two fresh runs (FLANN KD-trees and RANSAC re-seeded) give identical matches."""
-    a, b, _ = _graf(3, half=True)
+    a, b, _ = _graf(shared_data, 3, half=True)
     m = make_baseline("asift")
     r1 = m.match(_store(a, b), "a", "b")
     r2 = m.match(_store(a, b), "a", "b")

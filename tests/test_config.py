@@ -136,7 +136,7 @@ def test_config_file_and_precedence(tmp_path, capsys, captured):
     assert (cfg.seed, cfg.load.max_size, cfg.tracks.merge_px) == (4, 800, 1.0)
     assert cfg.match.matcher == {"fine_top_k": 3, "coarse.rank_by": "matches"}
     m = make_matcher(cfg.match, cfg.seed)
-    assert m.cfg.fine_top_k == 3 and m.cfg.coarse.rank_by == "matches" and m.cfg.coarse.seed == 4
+    assert m.cfg.fine_top_k == 3 and m.cfg.coarse.rank_by == "matches" and m.cfg.seed == 4
     # preset < file < flags given on the command line < --set; flags left at their default do not count
     assert _cli(tmp_path, capsys, "--preset", "sift", "--config", toml, "--max-size", "640",
                 "--set", "tracks.merge_px=0.5", "--set", "matcher.fine_top_k=1")[0] == 2  # sift has no fine_top_k
@@ -185,7 +185,7 @@ def test_the_seed_reaches_the_matcher_and_colmap(build):
 
     cfg = build()
     m = make_matcher(cfg.match, cfg.seed).cfg
-    assert m.seed == m.reference.seed == m.coarse.seed == 7
+    assert m.seed == 7  # the one seed of every matching stage (matching.config)
     assert verify_options(cfg, 2.0).ransac.random_seed == 7
     o = mapping_options(cfg, 2.0)
     assert o.random_seed == o.mapper.random_seed == o.triangulation.random_seed == 7

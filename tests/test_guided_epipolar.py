@@ -42,8 +42,8 @@ def test_band_candidates_equal_the_brute_force_set(case):
     lines = np.c_[kq, np.ones(len(kq))] @ F.T
     lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
     d = np.abs(lines @ np.c_[kt, np.ones(len(kt))].T)
-    expected = set(zip(*np.nonzero(d <= 1.5)))
-    got = set(zip(rows.tolist(), cols.tolist()))
+    expected = set(zip(*np.nonzero(d <= 1.5), strict=True))
+    got = set(zip(rows.tolist(), cols.tolist(), strict=True))
     assert len(expected) > 500
     assert got == {(int(a), int(b)) for a, b in expected}
 
@@ -89,8 +89,8 @@ def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
     ground-truth epipolar geometry, at no loss of the consistent fraction."""
     from matching.io import load_gray
     from matching.store import FeatureStore
-    from recon.eval.gt import find_gt
     from recon.core.pipeline import make_matcher
+    from recon.eval.gt import find_gt
     from scenes.render import render_scene
 
     scene = tmp_path / "fw"
@@ -116,7 +116,6 @@ def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.requires_shared("scenes/sacre_coeur/images")
 def test_guided_round_skips_pairs_without_trustworthy_geometry(shared_data):
     """sacre_coeur (real photos): an overlapping pair gains matches; a pair whose first-round
     F holds few of its matches is left exactly as the first round returned it (without the gate

@@ -8,12 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA as DATA
+from matching.geometry import local_scale
 from matching.metrics import (
     DEFAULT_TH,
     gt_reference,
     inlier_ratio,
-    local_scale,
     precision,
     precision_of_points,
     project,
@@ -21,8 +20,6 @@ from matching.metrics import (
     reprojection_errors,
 )
 from matching.types import PairResult
-
-needs_data = pytest.mark.requires_shared("oxford/graf/img1.png")
 
 # Oxford graf H1to2p: a real, clearly projective homography
 H_GRAF = np.array([[8.7976964e-01, 3.1245438e-01, -3.9430589e01],
@@ -149,11 +146,10 @@ def test_reference_correct():
     assert reference_correct(r, np.eye(3), (100, 100)) is None  # GT: same scale
 
 
-@needs_data
-def test_gt_reference_direction_on_real_zoom():
+def test_gt_reference_direction_on_real_zoom(shared_data):
     """A real image zoomed 2x: SIFT keypoints of the same points are ~2x larger in image 1, i.e.
     image 1 resolves the surface better, and gt_reference says image 1."""
-    img0 = cv2.imread(str(DATA / "oxford" / "graf" / "img1.png"), cv2.IMREAD_GRAYSCALE)[200:456, 300:556]
+    img0 = cv2.imread(str(shared_data / "oxford" / "graf" / "img1.png"), cv2.IMREAD_GRAYSCALE)[200:456, 300:556]
     H = _zoom(2.0, 127.5, 127.5)
     img1 = cv2.warpPerspective(img0, H, (256, 256), flags=cv2.INTER_CUBIC)
     sift = cv2.SIFT_create()
@@ -165,6 +161,6 @@ def test_gt_reference_direction_on_real_zoom():
     p1 = np.array([k1[m.trainIdx].pt for m in good])
     ok = reprojection_errors(H, p0, p1) <= 3
     assert ok.sum() >= 10
-    size_ratio = np.median([k1[m.trainIdx].size / k0[m.queryIdx].size for m, o in zip(good, ok) if o])
+    size_ratio = np.median([k1[m.trainIdx].size / k0[m.queryIdx].size for m, o in zip(good, ok, strict=True) if o])
     assert size_ratio == pytest.approx(2.0, rel=0.25)
     assert gt_reference(H, (256, 256)) == 1

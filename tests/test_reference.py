@@ -7,7 +7,19 @@ import numpy as np
 import pytest
 
 from matching.features import DetectorConfig, detect
-from matching.reference import ReferenceConfig, choose_reference, paper_coefficient
+from matching.reference import (
+    ReferenceConfig,
+    ReferenceDecision,
+    choose_reference,
+    larger_image,
+    paper_coefficient,
+    reason_for,
+    reference_from_final_homography,
+    settle_reference,
+)
+from matching.types import CoarseScore, PairResult, ViewParams
+
+SIZE0 = (801, 601)  # (w, h) of image 0: centre (400, 300)
 
 
 def test_paper_coefficient_sign_follows_segment_lengths():
@@ -16,7 +28,8 @@ def test_paper_coefficient_sign_follows_segment_lengths():
     assert paper_coefficient(a * 2, a, d) > 0  # source segments longer: source is more detailed
     assert paper_coefficient(a, a * 2, d) < 0
     # descriptor distances weight the terms down (1 - (d_i + d_i+1) / 1000)
-    assert paper_coefficient(a * 2, a, np.full(3, 250, np.float32)) == pytest.approx(0.5 * paper_coefficient(a * 2, a, d))
+    weighted = paper_coefficient(a * 2, a, np.full(3, 250, np.float32))
+    assert weighted == pytest.approx(0.5 * paper_coefficient(a * 2, a, d))
 
 
 def _zoom_pair(img: np.ndarray, zoom: float) -> tuple[np.ndarray, np.ndarray]:
@@ -52,3 +65,85 @@ def test_unrelated_images_leave_the_reference_undecided(shared_data):
     d = choose_reference(detect(img, det), detect(noise, det), ReferenceConfig())
     assert d.reference is None
     assert "undecided" in d.reason
+
+
+def _zoom_about_centre(s: float) -> np.ndarray:
+    """Zoom by `s` about image 0's centre: image 1 shows the scene `s` times larger."""
+    c = np.array([[1, 0, 400.0], [0, 1, 300.0], [0, 0, 1]])
+    return c @ np.diag([s, s, 1.0]) @ np.linalg.inv(c)
+
+
+class _Coarse:
+    """A fake coarse search: side -> scores, recording which sides were searched."""
+
+    def __init__(self, by_side: dict[int, list[CoarseScore]]):
+        self.by_side, self.searched = by_side, []
+
+    def __call__(self, side: int) -> list[CoarseScore]:
+        self.searched.append(side)
+        return self.by_side[side]
+
+
+def _view(inliers: int, H: np.ndarray | None, score: float | None = None, t: float = 2.0) -> CoarseScore:
+    return CoarseScore(ViewParams(t, 0.0, 1.0), inliers + 10, inliers, float(inliers if score is None else score), H)
+
+
+def _undecided(f0: float = 2.0, f1: float = 1.0) -> ReferenceDecision:
+    return ReferenceDecision(None, f0, f1, "undecided: only 3 mutual SIFT matches between the originals")
+
+
+def test_larger_image_rule():
+    assert larger_image(0.5, 1.1) == 0 and larger_image(2.0, 1.1) == 1
+    assert larger_image(1.05, 1.1) is None and larger_image(1 / 1.05, 1.1) is None
+    assert larger_image(float("nan"), 1.1) is None
+
+
+def test_a_decided_reference_is_kept_and_only_its_side_searched():
+    coarse = _Coarse({1: [_view(5, None)]})
+    d = ReferenceDecision(1, 0.0, 0.0, "image 1 is 1.50x larger (80 inliers)")
+    assert settle_reference(d, coarse, SIZE0, ReferenceConfig(), accept_inliers=40) == 1
+    assert coarse.searched == [1] and d.reason == "image 1 is 1.50x larger (80 inliers)"
+    assert reason_for(d, 1) == d.reason
+
+
+@pytest.mark.parametrize("first, H_target_from_first, expected, searched", [
+    (0, _zoom_about_centre(0.5), 0, {0}),  # image 0 shrinks into image 1: image 0 is larger
+    (0, _zoom_about_centre(2.0), 1, {0, 1}),  # image 1 is larger: its side is searched too
+    (1, _zoom_about_centre(0.5), 1, {1}),  # the view maps image 1 -> image 0, shrinking: image 1 larger
+    (0, _zoom_about_centre(1.05), 0, {0}),  # equal within the tolerance: the first side stays
+    (1, _zoom_about_centre(1.05), 1, {1}),
+])
+def test_an_undecided_reference_is_settled_by_the_first_sides_verified_view(first, H_target_from_first, expected,
+                                                                             searched):
+    coarse = _Coarse({first: [_view(3, None, t=1.0), _view(25, H_target_from_first)], 1 - first: [_view(5, None)]})
+    d = _undecided(*((2.0, 1.0) if first == 0 else (1.0, 2.0)))
+    assert settle_reference(d, coarse, SIZE0, ReferenceConfig(), accept_inliers=40) == expected
+    assert set(coarse.searched) == searched and d.reference == expected
+    assert f"so image {expected} is the reference" in d.reason and "coarse view geometry" in d.reason
+    assert reason_for(d, expected) == d.reason
+
+
+def test_without_a_verified_view_both_sides_are_searched_and_the_better_one_wins():
+    coarse = _Coarse({0: [_view(12, _zoom_about_centre(0.5))], 1: [_view(15, None)]})  # 12 < 40 / 2
+    d = _undecided()
+    assert settle_reference(d, coarse, SIZE0, ReferenceConfig(), accept_inliers=40) == 1
+    assert coarse.searched[0] == 0 and set(coarse.searched) == {0, 1}
+    assert d.reference is None  # still undecided: the result's reason says why image 1 was used
+    assert reason_for(d, 1).endswith("; chose image 1 by coarse score")
+
+
+def _two_sided_result(scale: float, n_inliers: int) -> PairResult:
+    z = np.zeros((40, 2), np.float32)
+    return PairResult("extra-affine", z, z.copy(), np.stack([np.arange(40)] * 2, 1).astype(np.int32),
+                      np.zeros(40, np.float32), reference=0, reference_reason="undecided",
+                      H_1_from_0=_zoom_about_centre(scale), inlier_mask=np.arange(40) < n_inliers)
+
+
+def test_reference_from_the_final_homography():
+    res = reference_from_final_homography(_two_sided_result(1.6, 35), SIZE0, min_inliers=30)
+    assert res.reference == 1
+    assert res.reference_reason == "undecided; both images simulated, final homography: image 1 is 1.60x larger"
+    res = reference_from_final_homography(_two_sided_result(1 / 1.6, 35), SIZE0, min_inliers=30)
+    assert res.reference == 0 and res.reference_reason.endswith("image 0 is 1.60x larger")
+    weak = reference_from_final_homography(_two_sided_result(1.6, 20), SIZE0, min_inliers=30)  # too few inliers
+    assert weak.reference == 0 and weak.reference_reason == "undecided"

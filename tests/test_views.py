@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from matching.types import ViewParams
-from matching.views import (GridConfig, antialias_sigma, apply_affine, map_to_original, simulate,
-                            view_affine, view_grid)
+from matching.views import GridConfig, antialias_sigma, apply_affine, map_to_original, simulate, view_affine, view_grid
 
 
 def test_default_grid_has_the_papers_45_views_per_tilt():

@@ -1,0 +1,173 @@
+"""`MatcherConfig`: every option of the extra-affine matcher, composed of the stage configs.
+
+One source for every option: each field is typed and documented by the string right below it
+(`field_docs` reads those, so a CLI or a check can show them), each stage config lives with its
+stage (`views.GridConfig`, `reference.ReferenceConfig`, `coarse.CoarseConfig`,
+`fine.FineConfig`, `escalation.EscalationConfig`), and the one `seed` seeds every stage's
+RANSAC and FLANN (the stage configs have no seed of their own, so none can disagree).
+Measured reasons for the defaults are in docs/decisions.md.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import textwrap
+from dataclasses import dataclass, field, fields, replace
+from functools import cache
+from typing import Any, Literal
+
+from .coarse import CoarseConfig
+from .escalation import EscalationConfig
+from .fine import FineConfig
+from .reference import ReferenceConfig
+from .views import GridConfig
+
+Variant = Literal["default", "paper", "multiview"]
+
+
+@dataclass(frozen=True)
+class MatcherConfig:
+    """Everything the extra-affine matcher does, with the paper's choices where they measure best
+    (`MatcherConfig.paper()` is the plain reading, `MatcherConfig.multiview()` what `recon run` uses)."""
+
+    grid: GridConfig = field(default_factory=GridConfig)
+    """The simulated views (t, phi, s) of the coarse search (§III-B)."""
+    reference: ReferenceConfig = field(default_factory=ReferenceConfig)
+    """How the image to simulate is chosen (§III-A)."""
+    coarse: CoarseConfig = field(default_factory=CoarseConfig)
+    """The ORB coarse search that ranks the views (§III-B)."""
+    fine: FineConfig = field(default_factory=FineConfig)
+    """The SIFT fine stage on the best views (§III-C)."""
+    escalation: EscalationConfig = field(default_factory=EscalationConfig)
+    """What a pair the fast path leaves unverified tries next."""
+    fine_top_k: int = 2
+    """How many of the best coarse views the fine stage fuses (paper: 1); two views give more
+    correct matches at equal precision (docs/decisions.md)."""
+    fine_include_original: bool = False
+    """Also fine-match the unwarped originals (multi-view: keypoints shared across pairs form long
+    tracks, and matches cover the surfaces the best view does not rectify)."""
+    final_homography: bool = True
+    """Fit a RANSAC homography to the final matches and flag inliers (planar pairs, benchmarks);
+    the multi-view pipeline turns it off and leaves verification to COLMAP."""
+    final_ransac_px: float = 1.5
+    """Threshold of the final homography, px of image 1: 3 px (OpenCV's default) admits SIFT
+    localisation errors of 2-3 px that the sqrt(3) px precision test rejects (docs/decisions.md)."""
+    guided: bool = True
+    """After the final homography, re-match the fine views' keypoints only against target
+    keypoints within `guided_px` of their predicted position (more matches at equal precision)."""
+    guided_px: float = 4.0
+    """Radius of the guided round under H, px of the original target."""
+    guided_ratio: float = 0.8
+    """Lowe's ratio of the guided round under H."""
+    guided_epipolar: bool = False
+    """Without a final homography (multi-view): fit a fundamental matrix (RANSAC,
+    `guided_epipolar_px`) to the matches and re-match the fine views' keypoints only against
+    target keypoints within `guided_epipolar_px` of their epipolar line, keeping the
+    F-consistent union with the first round (`guided.GuidedEpipolar`)."""
+    guided_epipolar_px: float = 1.0
+    """Band half-width around the epipolar line and F's RANSAC threshold, px: a wider band lets in
+    matches near the line that are wrong (docs/decisions.md)."""
+    guided_epipolar_ratio: float = 0.7
+    """Lowe's ratio inside the epipolar band (0.8 lets in more wrong matches, docs/decisions.md)."""
+    guided_epipolar_min_inliers: int = 50
+    """The epipolar round runs only when the first round's F has at least this many inliers..."""
+    guided_epipolar_min_ratio: float = 0.35
+    """...and at least this fraction of the first round's matches: around a wrong F the band
+    collects chance matches consistent with it (docs/decisions.md)."""
+    verify: Literal["auto", "homography", "fundamental"] = "auto"
+    """The model that counts verified matches for the escalation decision ("auto" = homography
+    with `final_homography`, else fundamental matrix)."""
+    min_result_inliers: int = 10
+    """A final result with fewer verified matches is returned empty, with the reason (random
+    matches between unrelated images reach a few RANSAC inliers, docs/decisions.md)."""
+    workers: int = 0
+    """Threads for independent views (0 = all cores, 1 = none, for callers that already run pairs
+    in parallel). Results do not depend on it."""
+    seed: int = 0
+    """Seeds every RANSAC and FLANN of every stage: results are deterministic per seed."""
+
+    @staticmethod
+    def paper() -> MatcherConfig:
+        """A plain reading of the paper: Eq. 1 reference, most-matches ranking, no blur, no escalation."""
+        return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
+                             coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0),
+                             fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
+                             escalation=EscalationConfig(enabled=False))
+
+    @staticmethod
+    def multiview() -> MatcherConfig:
+        """For `recon run`: no final homography (COLMAP verifies with F / E; the escalation trigger
+        counts fundamental-matrix inliers), the originals always fine-matched too (keypoints shared
+        by all pairs of an image form long tracks), the epipolar-guided round, and only the cheap
+        escalation levels (`topk`, `swap`), only for pairs whose coarse search found some overlap
+        (>= 15 ORB inliers in a view): in exhaustive matching most weak pairs simply do not overlap,
+        and the two-sided levels cost seconds each on them (docs/decisions.md)."""
+        return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
+                             escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15))
+
+    @staticmethod
+    def from_overrides(**kw: Any) -> MatcherConfig:
+        """Build from flat overrides: `variant` ("default", "paper", "multiview"), top-level
+        fields, or a section's field as `section__field` (or `section.field`, via `**{...}`).
+
+        e.g. `from_overrides(final_homography=False, coarse__rank_by="matches", seed=3)`.
+        Unknown names raise ValueError listing the valid ones.
+        """
+        variant = kw.pop("variant", "default")
+        presets = {"default": MatcherConfig, "paper": MatcherConfig.paper, "multiview": MatcherConfig.multiview}
+        if variant not in presets:
+            raise ValueError(f"unknown variant {variant!r}; choose one of {', '.join(presets)}")
+        base = presets[variant]()
+        top = {f.name for f in fields(MatcherConfig)}
+        sections = {f.name for f in fields(MatcherConfig) if dataclasses.is_dataclass(getattr(base, f.name))}
+        by_section: dict[str, dict[str, Any]] = {}
+        flat: dict[str, Any] = {}
+        for key, value in kw.items():
+            sec, sep, name = key.replace(".", "__", 1).partition("__")
+            if sep:
+                if sec not in sections:
+                    raise ValueError(f"unknown config section {sec!r} in {key!r}; "
+                                     f"sections: {', '.join(sorted(sections))}")
+                valid = {f.name for f in fields(getattr(base, sec))}
+                if name not in valid:
+                    raise ValueError(f"unknown option {key!r}; {sec} has {', '.join(sorted(valid))}")
+                by_section.setdefault(sec, {})[name] = value
+            elif key in top:
+                flat[key] = value
+            else:
+                raise ValueError(f"unknown matcher option {key!r}; valid: {', '.join(sorted(top))} "
+                                 f"(or section__field for {', '.join(sorted(sections))})")
+        for sec, vals in by_section.items():
+            flat[sec] = replace(getattr(base, sec), **vals)
+        return replace(base, **flat)
+
+    @property
+    def verify_model(self) -> Literal["homography", "fundamental"]:
+        """The model that counts verified matches (`verify` with "auto" resolved)."""
+        if self.verify != "auto":
+            return self.verify
+        return "homography" if self.final_homography else "fundamental"
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """{field name: its docstring} of a dataclass whose fields are documented by the string
+    literal right below them (attribute docstrings, as in this module); inherited fields
+    included, the subclass's text winning. Fields without one are absent."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass) or klass is object:
+            continue
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for node, nxt in zip(body, body[1:], strict=False):
+            if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                    and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant)
+                    and isinstance(nxt.value.value, str)):
+                docs[node.target.id] = inspect.cleandoc(nxt.value.value)
+    return docs

@@ -1,0 +1,141 @@
+"""Second matching rounds under the first round's geometry: a homography (planar pairs) or a
+fundamental matrix (multi-view).
+
+The first round's ratio test compares each keypoint with every target keypoint, so a true match
+loses to a similar pattern elsewhere in the image. Once a verified model says where (H) or on
+which line (F) a keypoint's match must lie, the fine views' keypoints are re-matched only against
+the target keypoints there (`fine.guided_match`, `fine.epipolar_guided_match`): more matches at
+equal precision. Each round keeps the first round's result when it does not improve on it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import cast
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .context import Attempt, MatchContext
+from .features import Features
+from .fine import FineMatches, epipolar_guided_match, epipolar_pair_distance, guided_match
+from .matching_utils import ransac_homography, unique_train
+from .types import PairResult, ViewParams
+from .viewfeatures import original_features, view_features
+from .views import capped_view
+
+MatchFn = Callable[[Features], tuple[NDArray[np.int32], NDArray[np.float32]]]
+
+
+def rematch_views(ctx: MatchContext, ref: int, views: list[ViewParams], match_fn: MatchFn,
+                  first: FineMatches | None = None) -> tuple[NDArray, NDArray, NDArray]:
+    """(reference keypoints, (K, 2) matches into them and into the target's keypoints, distances)
+    of every fine view of image `ref` re-matched by `match_fn(view features) -> (matches,
+    distances)`, after `first`'s matches when given."""
+    fc = ctx.cfg.fine
+    name = ctx.names[ref]
+    size = ctx.size(ref)
+    kpts_ref: list[NDArray] = []
+    pairs: list[NDArray] = []
+    dists: list[NDArray] = []
+    offset = 0
+    if first is not None:
+        kpts_ref, pairs, dists, offset = [first.kpts_ref], [first.matches], [first.distances], len(first.kpts_ref)
+    for view in views:
+        rendered = capped_view(view, size, fc.max_area_ratio)
+        fv = view_features(ctx.store, name, rendered, fc.detector, fc.interp, fc.antialias)
+        m, d = match_fn(fv)
+        kpts_ref.append(fv.kpts[m[:, 0]])
+        pairs.append(np.stack([np.arange(len(m)) + offset, m[:, 1]], axis=1))
+        dists.append(d)
+        offset += len(m)
+    kr = np.concatenate(kpts_ref) if kpts_ref else np.zeros((0, 2), np.float32)
+    m_all = np.concatenate(pairs).astype(np.int32) if pairs else np.zeros((0, 2), np.int32)
+    d_all = np.concatenate(dists).astype(np.float32) if dists else np.zeros(0, np.float32)
+    return kr, m_all, d_all
+
+
+def compact(kr: NDArray, kpts_target: NDArray, m_all: NDArray[np.int32], d_all: NDArray[np.float32]) -> FineMatches:
+    """FineMatches keeping only the reference keypoints that some match uses (re-indexed)."""
+    used = np.unique(m_all[:, 0])
+    remap = np.full(len(kr), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    matches = np.stack([remap[m_all[:, 0]], m_all[:, 1]], 1).astype(np.int32)
+    return FineMatches(kr[used], kpts_target, matches, d_all, {})
+
+
+def guided_homography_round(ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+    """Re-match `att`'s fine views under the fitted homography `res.H_1_from_0` (within
+    `guided_px`, ratio `guided_ratio`), then refit the final homography on the guided matches;
+    `res` is kept when the refit has fewer inliers."""
+    cfg = ctx.cfg
+    ref = att.reference
+    assert res.H_1_from_0 is not None
+    H_t_from_ref = res.H_1_from_0 if ref == 0 else np.asarray(np.linalg.inv(res.H_1_from_0), np.float64)
+    ft = original_features(ctx.store, ctx.names[1 - ref], cfg.fine.detector)
+    kr, m_all, d_all = rematch_views(
+        ctx, ref, att.views,
+        lambda fv: guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, H_t_from_ref,
+                                cfg.guided_px, cfg.guided_ratio))
+    if len(m_all) == 0:
+        return res
+    m_all, d_all = unique_train(m_all, d_all)
+    guided = Attempt("guided", ref, compact(kr, ft.kpts, m_all, d_all), att.views, att.coarse, 0)
+    out = ctx.to_result(guided, res.reference_reason, res.f0, res.f1)
+    out.escalation = res.escalation
+    p0, p1 = out.matched_points(inliers_only=False)
+    H, inl = ransac_homography(p0, p1, cfg.final_ransac_px, seed=cfg.seed)
+    if H is None or inl.sum() < res.num_inliers:
+        return res
+    out.H_1_from_0, out.inlier_mask = H, inl
+    return out
+
+
+def trusted_fundamental(ctx: MatchContext, fm: FineMatches) -> NDArray[np.float64] | None:
+    """F (reference -> target) of the first round's matches, or None when it is not trustworthy:
+    fewer than `guided_epipolar_min_inliers` inliers, or under `guided_epipolar_min_ratio` of the
+    matches. Around a wrong F the band collects chance matches that are consistent with it, so
+    COLMAP would verify them (docs/decisions.md)."""
+    cfg = ctx.cfg
+    p_ref, p_t = fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]]
+    cv2.setRNGSeed(cfg.seed)
+    F, mask = cv2.findFundamentalMat(p_ref.astype(np.float32), p_t.astype(np.float32), cv2.FM_RANSAC,
+                                     cfg.guided_epipolar_px, 0.999, 10000)
+    if F is None or F.shape != (3, 3) or mask is None:
+        return None
+    inl = mask.ravel().astype(bool)
+    if inl.sum() < cfg.guided_epipolar_min_inliers or inl.sum() < cfg.guided_epipolar_min_ratio * len(inl):
+        return None
+    return cast(NDArray[np.float64], F)
+
+
+def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+    """Re-match `att`'s fine views within `guided_epipolar_px` of the epipolar lines of a
+    fundamental matrix fitted to its matches (`trusted_fundamental`), ratio
+    `guided_epipolar_ratio`; returns the F-consistent union of both rounds when it has more
+    matches than `res`, else `res`."""
+    cfg = ctx.cfg
+    ref = att.reference
+    fm = att.fine
+    F = trusted_fundamental(ctx, fm)
+    if F is None:
+        return res
+    ft = original_features(ctx.store, ctx.names[1 - ref], cfg.fine.detector)
+    kr, m_all, d_all = rematch_views(
+        ctx, ref, att.views,
+        lambda fv: epipolar_guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, F,
+                                         cfg.guided_epipolar_px, cfg.guided_epipolar_ratio),
+        first=fm)
+    # one match per reference position and per target keypoint (first round wins ties: it comes first)
+    key = np.c_[np.round(kr[m_all[:, 0]] * 4).astype(np.int64), m_all[:, 1].astype(np.int64)]
+    _, first = np.unique(key, axis=0, return_index=True)
+    m_all, d_all = m_all[np.sort(first)], d_all[np.sort(first)]
+    m_all, d_all = unique_train(m_all, d_all)
+    keep = epipolar_pair_distance(F, kr[m_all[:, 0]], ft.kpts[m_all[:, 1]]) <= cfg.guided_epipolar_px
+    fm2 = compact(kr, ft.kpts, m_all[keep], d_all[keep])
+    if len(fm2.matches) <= res.num_matches:
+        return res
+    out = ctx.to_result(Attempt("guided", ref, fm2, att.views, att.coarse, 0), res.reference_reason, res.f0, res.f1)
+    out.escalation = res.escalation
+    return out

@@ -1,0 +1,180 @@
+"""The matcher's strategies, in the order the matcher runs them.
+
+Attempts are ways of matching the pair, each returning an `Attempt` with its verified-match
+count: the paper's `fast_path` first, then the `ESCALATION` levels, cheapest first (see
+`matching.escalation`): `topk`, `swap`, `pairs` (`matching.viewpairs`), `two-sided`
+(`matching.twosided`). A level runs only while the best attempt so far is not verified well
+enough, and the attempt with the most verified matches wins.
+
+`FINISHING` are steps on the winning attempt's result, in order: the final homography, the
+guided round under H, the guided round under F (`matching.guided`), and the reference read off
+the final homography when both images were simulated (`matching.reference`).
+
+Each strategy is a small object with one job: `applies(...)` says whether the config and the
+state so far call for it, `run(...)` does it.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from .coarse import rank_views
+from .context import Attempt, MatchContext
+from .fine import fine_match, select_fine_views
+from .guided import guided_epipolar_round, guided_homography_round
+from .matching_utils import ransac_homography
+from .reference import reference_from_final_homography
+from .twosided import two_sided_attempt
+from .types import PairResult
+from .viewpairs import view_pair_attempt
+
+
+def fine_attempt(ctx: MatchContext, ref: int, top_k: int, label: str) -> Attempt:
+    """Image `ref` simulated: the fine stage on its `top_k` best coarse views (plus the original
+    with `fine_include_original`), and how many of the fused matches verify."""
+    cfg = ctx.cfg
+    scores = ctx.coarse_for(ref)
+    views = select_fine_views(rank_views(scores), top_k, cfg.fine_include_original)
+    fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.fine, ctx.pool, cfg.seed)
+    n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
+    return Attempt(label=label, reference=ref, fine=fm, views=views, coarse=scores, verified=n_verified)
+
+
+def fast_path(ctx: MatchContext) -> Attempt:
+    """The paper's path: the reference the coarse stage settled (`ctx.reference`), its
+    `fine_top_k` best views."""
+    return fine_attempt(ctx, ctx.reference, ctx.cfg.fine_top_k, "")
+
+
+class Level(Protocol):
+    """An escalation level: another way of matching the pair, given the best attempt so far."""
+
+    label: str
+
+    def applies(self, ctx: MatchContext, best: Attempt) -> bool: ...
+
+    def run(self, ctx: MatchContext, best: Attempt) -> Attempt: ...
+
+
+class TopK:
+    """Fuse more of the same side's best views (several surfaces or poses)."""
+
+    label = "topk"
+
+    def applies(self, ctx: MatchContext, best: Attempt) -> bool:
+        return ctx.cfg.escalation.top_k > ctx.cfg.fine_top_k
+
+    def run(self, ctx: MatchContext, best: Attempt) -> Attempt:
+        return fine_attempt(ctx, best.reference, ctx.cfg.escalation.top_k, self.label)
+
+
+class Swap:
+    """Simulate the other image (the reference choice was wrong)."""
+
+    label = "swap"
+
+    def applies(self, ctx: MatchContext, best: Attempt) -> bool:
+        return ctx.cfg.escalation.swap
+
+    def run(self, ctx: MatchContext, best: Attempt) -> Attempt:
+        return fine_attempt(ctx, 1 - best.reference, max(ctx.cfg.escalation.top_k, 1), self.label)
+
+
+class ViewPairs:
+    """Two-sided, view pair by view pair (`matching.viewpairs`)."""
+
+    label = "pairs"
+
+    def applies(self, ctx: MatchContext, best: Attempt) -> bool:
+        return ctx.cfg.escalation.pairs
+
+    def run(self, ctx: MatchContext, best: Attempt) -> Attempt:
+        return view_pair_attempt(ctx, best)
+
+
+class TwoSided:
+    """Both images simulated and pooled (`matching.twosided`)."""
+
+    label = "two-sided"
+
+    def applies(self, ctx: MatchContext, best: Attempt) -> bool:
+        return ctx.cfg.escalation.two_sided
+
+    def run(self, ctx: MatchContext, best: Attempt) -> Attempt:
+        return two_sided_attempt(ctx, best)
+
+
+ESCALATION: tuple[Level, ...] = (TopK(), Swap(), ViewPairs(), TwoSided())
+"""The escalation levels, cheapest first; `fast_path` precedes them."""
+
+
+def escalate(ctx: MatchContext, best: Attempt, levels: tuple[Level, ...] = ESCALATION) -> Attempt:
+    """Run `levels` in order while the best attempt has fewer than `escalation.min_inliers`
+    verified matches; the attempt with the most verified matches wins (the earlier on ties)."""
+    for level in levels:
+        if best.verified >= ctx.cfg.escalation.min_inliers:
+            break
+        if level.applies(ctx, best):
+            best = max(best, level.run(ctx, best), key=lambda a: a.verified)
+    return best
+
+
+# --- finishing steps on the winning attempt's result ---------------------------------------------
+class Finishing(Protocol):
+    """A step on the result of the winning attempt `att`."""
+
+    def applies(self, ctx: MatchContext, att: Attempt, res: PairResult) -> bool: ...
+
+    def run(self, ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult: ...
+
+
+class FinalHomography:
+    """RANSAC homography on the final matches (`final_ransac_px`), inliers flagged."""
+
+    def applies(self, ctx: MatchContext, att: Attempt, res: PairResult) -> bool:
+        return ctx.cfg.final_homography and res.num_matches >= 4
+
+    def run(self, ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+        p0, p1 = res.matched_points(inliers_only=False)
+        res.H_1_from_0, res.inlier_mask = ransac_homography(p0, p1, ctx.cfg.final_ransac_px, seed=ctx.cfg.seed)
+        if res.H_1_from_0 is None:
+            res.reason = "no homography fits the matches"
+        return res
+
+
+class GuidedHomography:
+    """The guided round under the final homography (`guided.guided_homography_round`)."""
+
+    def applies(self, ctx: MatchContext, att: Attempt, res: PairResult) -> bool:
+        return ctx.cfg.guided and res.H_1_from_0 is not None and bool(att.views)
+
+    def run(self, ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+        return guided_homography_round(ctx, att, res)
+
+
+class GuidedEpipolar:
+    """The guided round under a fundamental matrix, without a final homography
+    (`guided.guided_epipolar_round`)."""
+
+    def applies(self, ctx: MatchContext, att: Attempt, res: PairResult) -> bool:
+        cfg = ctx.cfg
+        return cfg.guided_epipolar and not cfg.final_homography and bool(att.views) and res.num_matches >= 15
+
+    def run(self, ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+        return guided_epipolar_round(ctx, att, res)
+
+
+class ReferenceFromFinalHomography:
+    """Both images simulated: the verified final homography names the reference
+    (`reference.reference_from_final_homography`)."""
+
+    def applies(self, ctx: MatchContext, att: Attempt, res: PairResult) -> bool:
+        return att.both_simulated and res.H_1_from_0 is not None
+
+    def run(self, ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+        return reference_from_final_homography(res, ctx.size(0), ctx.cfg.escalation.min_inliers)
+
+
+FINISHING: tuple[Finishing, ...] = (FinalHomography(), GuidedHomography(), GuidedEpipolar(),
+                                    ReferenceFromFinalHomography())
+"""The finishing steps, in order."""
