@@ -338,11 +338,12 @@ def test_cli_refuses_output_of_another_scene(scene, first_run, tmp_path, capsys)
         rc, _, err = _cli(capsys, other, "--out", stray, *extra)
         assert rc == 2 and "not a recon output folder" in err
         assert (stray / "thesis.tex").exists() and (stray / "cache").is_dir()
-    # --overwrite replaces the other scene's reconstruction
+    # --overwrite replaces the other scene's reconstruction, keeping the content-addressed pair
+    # cache (the three images are the first scene's: every pair is reused)
     rc, _, err = _cli(capsys, other, "--out", out, "--overwrite")
     assert rc == 0, err
     rep = json.loads((out / "report.json").read_text())
-    assert rep["scene"] == str(other.resolve()) and rep["pairs_computed"] == 3
+    assert rep["scene"] == str(other.resolve()) and rep["pairs_cached"] == 3 and rep["pairs_computed"] == 0
 
 
 def test_cli_no_model_keeps_database_and_report(tmp_path, capsys):
@@ -381,6 +382,8 @@ def test_cli_ctrl_c_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(recon.core.pipeline, "run_scene", interrupted)
+    for name in ("a.png", "b.png"):  # the CLI checks for image files before the run starts
+        (tmp_path / name).write_bytes(b"")
     rc = main(["run", str(tmp_path), "--method", "sift", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 130 and "Traceback" not in err and "rerun the same command to resume" in err

@@ -19,12 +19,18 @@ subtracts it).
 
 Atomicity: the pipeline builds the database in `database.db.tmp` and renames it over
 `database.db` only when complete (`build_database`), so an interrupted run never leaves a
-half-written database under the final name.
+half-written database under the final name. A database damaged afterwards (a disk error, a
+stray write) can still carry a matching fingerprint in `cache/state.json`:
+`database_is_sound` (SQLite's `PRAGMA quick_check` plus the tables COLMAP reads) must pass
+before one is reused, else it is rebuilt. A full disk while building is raised as
+`OSError(ENOSPC)` naming the database (SQLite reports it as "database or disk is full").
 """
 
 from __future__ import annotations
 
+import errno
 import os
+import sqlite3
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
@@ -34,14 +40,66 @@ from numpy.typing import NDArray
 
 CAMERA_MODES: tuple[str, ...] = ("auto", "single", "per-image")
 COLMAP_PIXEL_OFFSET = 0.5  # COLMAP keypoint = OpenCV keypoint + 0.5
+# the tables the pipeline and COLMAP's mapper read (pycolmap >= 3.12 schema)
+REQUIRED_TABLES: tuple[str, ...] = ("cameras", "images", "keypoints", "matches", "two_view_geometries",
+                                    "rigs", "frames")
 
 
-def _remove(path: Path) -> None:
-    for p in (path, Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
+def remove_database(path: str | Path) -> None:
+    """Delete a database file and its SQLite side files (-journal, -wal, -shm), if present."""
+    for p in (Path(path), Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
         try:
             p.unlink()
         except FileNotFoundError:
             pass
+
+
+_remove = remove_database
+
+
+def database_problem(path: str | Path) -> str | None:
+    """Why the database at `path` cannot be trusted (one line), or None when it is sound.
+
+    Sound = SQLite opens it read-only, `PRAGMA quick_check` says "ok" (page-level damage, a
+    truncated file, garbage bytes) and it has the tables COLMAP needs, with at least one camera
+    and one image. Reads only; never modifies the file.
+    """
+    p = Path(path)
+    if not p.is_file():
+        return "missing"
+    try:
+        con = sqlite3.connect(f"{p.resolve().as_uri()}?mode=ro", uri=True, timeout=1.0)
+    except sqlite3.Error as e:
+        return f"cannot open: {e}"
+    try:
+        rows = con.execute("PRAGMA quick_check").fetchall()
+        if [r[0] for r in rows] != ["ok"]:
+            return f"SQLite integrity check failed: {rows[0][0] if rows else 'no answer'}"
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        missing = [t for t in REQUIRED_TABLES if t not in tables]
+        if missing:
+            return f"not a COLMAP database (no table {', '.join(missing)})"
+        for t in ("cameras", "images"):
+            if con.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0] == 0:
+                return f"no {t}"
+    except sqlite3.Error as e:
+        return f"unreadable: {e}"
+    finally:
+        con.close()
+    return None
+
+
+def database_is_sound(path: str | Path) -> bool:
+    """True when the database can be reused (see `database_problem`). The pipeline must check
+    this before trusting a database whose fingerprint matches; rebuild it when False."""
+    return database_problem(path) is None
+
+
+def _is_disk_full(e: BaseException) -> bool:
+    if isinstance(e, OSError):
+        return e.errno in (errno.ENOSPC, errno.EDQUOT)
+    text = str(e).lower()
+    return "disk is full" in text or "no space left" in text
 
 
 def _import(db_path: Path, image_dir: Path, names: Sequence[str], mode: pycolmap.CameraMode,
@@ -196,8 +254,12 @@ def build_database(db_path: str | Path, image_dir: str | Path, names: Sequence[s
         if on_stage:
             on_stage("verify")
         verify(tmp, two_view, num_threads)
-    except BaseException:
+    except BaseException as e:
         _remove(tmp)
+        if _is_disk_full(e) and not isinstance(e, OSError):
+            raise OSError(errno.ENOSPC, "No space left on device", str(db_path)) from e
+        if isinstance(e, OSError) and e.filename is None:
+            e.filename = str(db_path)
         raise
     for suffix in ("-journal", "-wal", "-shm"):  # a closed sqlite db leaves none; be safe
         side = Path(f"{tmp}{suffix}")

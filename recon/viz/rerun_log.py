@@ -31,6 +31,12 @@ Per-pair entities and the final model are static, so they show on every timeline
 The sink is opened lazily on the first logged item, so nothing is created in the output folder
 before the pipeline has checked and claimed it. A saved recording is written to a temporary
 `.NAME.tmp-<pid>` file and renamed when complete, so a killed run never leaves half a file.
+
+Closing never hangs: the final flush of a `connect` / `spawn` sink blocks for as long as no
+viewer accepts the data (rerun-sdk 0.41 waits for ever by default), so `close` runs flush and
+disconnect in a daemon thread and gives up after `CLOSE_TIMEOUT_S` (`SAVE_CLOSE_TIMEOUT_S` for
+a file) with one warning; Ctrl-C still works while it waits. The viewer can be chosen with
+`RECON_RERUN_VIEWER=/path/to/rerun` (see `find_viewer`).
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ import dataclasses
 import os
 import shutil
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,6 +69,8 @@ GROWTH_POINTS = 20000  # points per step of the growth replay (keeps a 30-image 
 GROWTH_NEW = (255, 140, 0)  # the camera just registered
 GROWTH_OLD = (150, 150, 150)  # cameras registered earlier
 GROWTH_PTS = (90, 160, 230)
+CLOSE_TIMEOUT_S = 3.0  # connect / spawn: how long the final flush may wait for a viewer
+SAVE_CLOSE_TIMEOUT_S = 120.0  # save: a local file, only slow when huge
 
 
 @dataclass(frozen=True)
@@ -93,9 +102,60 @@ def parse_sink(spec: str, default_path: Path | None = None) -> Sink:
 
 
 def find_viewer() -> str | None:
-    """The Rerun viewer executable: on PATH or next to this Python (a venv's bin/), else None."""
+    """The Rerun viewer executable: `RECON_RERUN_VIEWER` when set (an empty value means none),
+    else `rerun` next to this Python (a venv's bin/) or on PATH; None when there is none."""
+    chosen = os.environ.get("RECON_RERUN_VIEWER")
+    if chosen is not None:
+        return shutil.which(chosen) if chosen.strip() else None
     here = str(Path(sys.executable).parent)
     return shutil.which("rerun", path=os.pathsep.join([here, os.environ.get("PATH", "")]))
+
+
+def finish_stream(rec: Any, timeout_s: float) -> str | None:
+    """Flush and disconnect a RecordingStream within `timeout_s` seconds; None when done, else
+    why not (one line). Runs in a daemon thread so a sink that never drains (no viewer at the
+    URL) cannot hang the process; the wait itself can be interrupted with Ctrl-C."""
+    errors: list[str] = []
+
+    def work() -> None:
+        try:
+            rec.flush(timeout_sec=timeout_s)
+        except Exception as e:  # rerun raises when its own timeout passes
+            errors.append(f"{type(e).__name__}: {e}")
+        try:
+            rec.disconnect()
+        except Exception as e:
+            errors.append(f"{type(e).__name__}: {e}")
+
+    t = threading.Thread(target=work, name="recon-rerun-close", daemon=True)
+    t.start()
+    deadline = time.monotonic() + timeout_s + 1.0
+    while t.is_alive() and time.monotonic() < deadline:
+        t.join(0.1)
+    if t.is_alive():
+        return f"gave up after {timeout_s:.0f} s"
+    return errors[0] if errors else None
+
+
+_abandoned: list[Any] = []  # streams whose flush was given up (kept alive: dropping one blocks too)
+
+
+def abandoned_streams() -> int:
+    """How many streams were given up on; the program may then end with `os._exit` once its
+    outputs are written (rerun's exit-time teardown waits for the absent viewer again)."""
+    return len(_abandoned)
+
+
+def _forget_stream(rec: Any) -> None:
+    """Keep an undrained stream referenced (dropping it would block in its destructor) and skip
+    rerun's exit-time flush of every stream, which would wait for the absent viewer again."""
+    _abandoned.append(rec)
+    try:
+        import rerun as rr
+
+        rr.unregister_shutdown()
+    except Exception:
+        pass
 
 
 def _esc(part: str) -> str:
@@ -281,6 +341,10 @@ class RerunLogger:
         self._growth_model: int | None = None  # model index of the last growth step logged
         self.seconds = 0.0  # wall-clock spent logging (overhead measurement)
         self.error: str | None = None  # the first logging failure (logging stops after it)
+        if sink.kind in ("connect", "spawn") and "rerun" not in sys.modules:
+            # rerun's own log lines about an absent viewer (it reads RUST_LOG once, at import)
+            # would repeat our one warning several times; RUST_LOG=... still overrides
+            os.environ.setdefault("RUST_LOG", "off")
 
     # sink ---------------------------------------------------------------------------------------
     def open_sink(self):
@@ -306,12 +370,18 @@ class RerunLogger:
         return rec
 
     def close(self, ok: bool = True) -> Path | None:
-        """Flush and close the sink; a saved recording is moved into place (deleted when not ok)."""
+        """Flush and close the sink, bounded in time (see module doc); a saved recording is moved
+        into place (deleted when not ok). A sink that does not drain gives one warning."""
         if self.rec is None:
             return None
         rec, self.rec = self.rec, None
-        rec.flush()
-        rec.disconnect()
+        timeout = SAVE_CLOSE_TIMEOUT_S if self.sink.kind == "save" else CLOSE_TIMEOUT_S
+        problem = finish_stream(rec, timeout)
+        if problem is not None and self.sink.kind != "save":
+            where = self.sink.target or "the default address (rerun+http://127.0.0.1:9876/proxy)"
+            print(f"recon: warning: the Rerun viewer at {where} did not take the recording ({problem}; is a "
+                  f"viewer running?); the run's outputs are complete", file=sys.stderr)
+            _forget_stream(rec)
         if self._tmp is None:
             return None
         tmp, self._tmp = self._tmp, None
