@@ -95,15 +95,54 @@ def database_is_sound(path: str | Path) -> bool:
     return database_problem(path) is None
 
 
-def _is_disk_full(e: BaseException) -> bool:
+def _is_disk_full(e: BaseException, folder: Path | None = None) -> bool:
+    """True for a full-disk failure: ENOSPC, SQLite's "database or disk is full", or (COLMAP
+    hides the cause: "No registered database factory succeeded") less than 1 MB free in `folder`."""
     if isinstance(e, OSError):
         return e.errno in (errno.ENOSPC, errno.EDQUOT)
     text = str(e).lower()
-    return "disk is full" in text or "no space left" in text
+    if "disk is full" in text or "no space left" in text:
+        return True
+    if folder is not None:
+        import shutil
+
+        try:
+            return shutil.disk_usage(folder).free < (1 << 20)
+        except OSError:
+            return False
+    return False
+
+
+def estimate_database_bytes(num_images: int, num_keypoints: int = 0, num_matches: int = 0, num_pairs: int = 0) -> int:
+    """A generous upper bound of the disk space building a database needs (bytes): keypoints
+    (24 B each, COLMAP's widest layout), raw and verified matches (8 B each), rows, SQLite's base
+    size, and x3 for the write-ahead log and its checkpoint, plus 1 MB."""
+    raw = 24 * num_keypoints + 16 * num_matches + 512 * (num_images + num_pairs)
+    return (256 << 10) + 3 * raw + (1 << 20)
+
+
+def require_free_space(db_path: str | Path, nbytes: int) -> None:
+    """OSError(ENOSPC) naming `db_path` when its folder has less than `nbytes` free.
+
+    Needed before COLMAP writes a database: a full disk inside one of pycolmap's transactions
+    throws from a destructor, and the process aborts (SIGABRT and a C stack dump) instead of
+    raising an exception Python could catch (pycolmap 4.2.1).
+    """
+    import shutil
+
+    folder = Path(db_path).parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if free < nbytes:
+        raise OSError(errno.ENOSPC, f"No space left on device ({free >> 10} KB free, about {nbytes >> 10} KB "
+                                    f"needed)", str(db_path))
 
 
 def _import(db_path: Path, image_dir: Path, names: Sequence[str], mode: pycolmap.CameraMode,
             camera_model: str) -> None:
+    require_free_space(db_path, estimate_database_bytes(len(names)))
     _remove(db_path)
     pycolmap.Database.open(str(db_path)).close()
     opts = pycolmap.ImageReaderOptions()
@@ -244,6 +283,8 @@ def build_database(db_path: str | Path, image_dir: str | Path, names: Sequence[s
     """
     db_path = Path(db_path)
     tmp = db_path.with_name(db_path.name + ".tmp")
+    require_free_space(db_path, estimate_database_bytes(  # the old file is replaced only at the end
+        len(names), sum(len(k) for k in keypoints.values()), sum(len(m) for m in matches), len(pairs)))
     try:
         if on_stage:
             on_stage("import")
@@ -256,7 +297,7 @@ def build_database(db_path: str | Path, image_dir: str | Path, names: Sequence[s
         verify(tmp, two_view, num_threads)
     except BaseException as e:
         _remove(tmp)
-        if _is_disk_full(e) and not isinstance(e, OSError):
+        if isinstance(e, Exception) and not isinstance(e, OSError) and _is_disk_full(e, db_path.parent):
             raise OSError(errno.ENOSPC, "No space left on device", str(db_path)) from e
         if isinstance(e, OSError) and e.filename is None:
             e.filename = str(db_path)

@@ -33,9 +33,11 @@ before the pipeline has checked and claimed it. A saved recording is written to 
 `.NAME.tmp-<pid>` file and renamed when complete, so a killed run never leaves half a file.
 
 Closing never hangs: the final flush of a `connect` / `spawn` sink blocks for as long as no
-viewer accepts the data (rerun-sdk 0.41 waits for ever by default), so `close` runs flush and
-disconnect in a daemon thread and gives up after `CLOSE_TIMEOUT_S` (`SAVE_CLOSE_TIMEOUT_S` for
-a file) with one warning; Ctrl-C still works while it waits. The viewer can be chosen with
+viewer accepts the data (rerun-sdk 0.41 waits for ever by default), and disconnecting a file
+sink whose writer died (a full disk) blocks for ever too, so `close` runs both in a daemon
+thread (`finish_stream`) and gives up after `CLOSE_TIMEOUT_S` (`SAVE_CLOSE_TIMEOUT_S` for a
+file's flush, `DISCONNECT_TIMEOUT_S` for the disconnect) with one warning, and the unfinished
+file is deleted; Ctrl-C still works while it waits. The viewer can be chosen with
 `RECON_RERUN_VIEWER=/path/to/rerun` (see `find_viewer`).
 """
 
@@ -70,7 +72,8 @@ GROWTH_NEW = (255, 140, 0)  # the camera just registered
 GROWTH_OLD = (150, 150, 150)  # cameras registered earlier
 GROWTH_PTS = (90, 160, 230)
 CLOSE_TIMEOUT_S = 3.0  # connect / spawn: how long the final flush may wait for a viewer
-SAVE_CLOSE_TIMEOUT_S = 120.0  # save: a local file, only slow when huge
+SAVE_CLOSE_TIMEOUT_S = 120.0  # save: flushing a local file is only slow when it is huge
+DISCONNECT_TIMEOUT_S = 3.0  # after a flush, disconnecting is immediate unless the sink is dead
 
 
 @dataclass(frozen=True)
@@ -111,17 +114,25 @@ def find_viewer() -> str | None:
     return shutil.which("rerun", path=os.pathsep.join([here, os.environ.get("PATH", "")]))
 
 
-def finish_stream(rec: Any, timeout_s: float) -> str | None:
-    """Flush and disconnect a RecordingStream within `timeout_s` seconds; None when done, else
-    why not (one line). Runs in a daemon thread so a sink that never drains (no viewer at the
-    URL) cannot hang the process; the wait itself can be interrupted with Ctrl-C."""
+def finish_stream(rec: Any, flush_timeout_s: float, disconnect_timeout_s: float = DISCONNECT_TIMEOUT_S) -> str | None:
+    """Flush, then disconnect, a RecordingStream, each bounded in time; None when both finished,
+    else why not (one line).
+
+    Runs in a daemon thread so a sink that never drains cannot hang the process: rerun-sdk
+    0.41's flush waits for ever for an absent viewer, and its disconnect waits for ever after a
+    file sink's writer died (a full disk). The waits themselves can be interrupted with Ctrl-C.
+    """
     errors: list[str] = []
+    flushed = threading.Event()
 
     def work() -> None:
         try:
-            rec.flush(timeout_sec=timeout_s)
+            rec.flush(timeout_sec=flush_timeout_s)
         except Exception as e:  # rerun raises when its own timeout passes
             errors.append(f"{type(e).__name__}: {e}")
+        flushed.set()
+        if errors:
+            return  # a sink that did not flush would block disconnect too
         try:
             rec.disconnect()
         except Exception as e:
@@ -129,12 +140,16 @@ def finish_stream(rec: Any, timeout_s: float) -> str | None:
 
     t = threading.Thread(target=work, name="recon-rerun-close", daemon=True)
     t.start()
-    deadline = time.monotonic() + timeout_s + 1.0
-    while t.is_alive() and time.monotonic() < deadline:
-        t.join(0.1)
-    if t.is_alive():
-        return f"gave up after {timeout_s:.0f} s"
-    return errors[0] if errors else None
+    for event_done, limit, what in ((flushed.is_set, flush_timeout_s + 1.0, "flush"),
+                                    (lambda: not t.is_alive(), disconnect_timeout_s, "disconnect")):
+        deadline = time.monotonic() + limit
+        while not event_done() and time.monotonic() < deadline:
+            t.join(0.05)
+        if not event_done():
+            return f"{what} gave up after {limit:.0f} s"
+        if errors:
+            return errors[0]
+    return None
 
 
 _abandoned: list[Any] = []  # streams whose flush was given up (kept alive: dropping one blocks too)
@@ -341,9 +356,9 @@ class RerunLogger:
         self._growth_model: int | None = None  # model index of the last growth step logged
         self.seconds = 0.0  # wall-clock spent logging (overhead measurement)
         self.error: str | None = None  # the first logging failure (logging stops after it)
-        if sink.kind in ("connect", "spawn") and "rerun" not in sys.modules:
-            # rerun's own log lines about an absent viewer (it reads RUST_LOG once, at import)
-            # would repeat our one warning several times; RUST_LOG=... still overrides
+        if sink.enabled and "rerun" not in sys.modules:
+            # rerun's own log lines (an absent viewer, a full disk; it reads RUST_LOG once, at
+            # import) would repeat our one warning several times; RUST_LOG=... still overrides
             os.environ.setdefault("RUST_LOG", "off")
 
     # sink ---------------------------------------------------------------------------------------
@@ -377,16 +392,21 @@ class RerunLogger:
         rec, self.rec = self.rec, None
         timeout = SAVE_CLOSE_TIMEOUT_S if self.sink.kind == "save" else CLOSE_TIMEOUT_S
         problem = finish_stream(rec, timeout)
-        if problem is not None and self.sink.kind != "save":
-            where = self.sink.target or "the default address (rerun+http://127.0.0.1:9876/proxy)"
-            print(f"recon: warning: the Rerun viewer at {where} did not take the recording ({problem}; is a "
-                  f"viewer running?); the run's outputs are complete", file=sys.stderr)
+        if problem is not None:
             _forget_stream(rec)
+            if ok:  # a failed run has its own error line; one is enough
+                if self.sink.kind == "save":
+                    print(f"recon: warning: the Rerun recording {self.sink.target} could not be completed "
+                          f"({problem}); the run's outputs are complete", file=sys.stderr)
+                else:
+                    where = self.sink.target or "the default address (rerun+http://127.0.0.1:9876/proxy)"
+                    print(f"recon: warning: the Rerun viewer at {where} did not take the recording ({problem}; "
+                          f"is a viewer running?); the run's outputs are complete", file=sys.stderr)
         if self._tmp is None:
             return None
         tmp, self._tmp = self._tmp, None
         final = Path(self.sink.target).expanduser()  # type: ignore[arg-type]
-        if ok and tmp.exists():
+        if ok and problem is None and tmp.exists():
             os.replace(tmp, final)
             return final
         tmp.unlink(missing_ok=True)
