@@ -19,9 +19,9 @@ Exit codes:
   cleanup (temporary files are removed, outputs stay consistent) and can be resumed by
   rerunning the same command. A second signal exits at once.
 
-Signal handlers are installed before anything heavy is imported (so Ctrl-C in the first second
-gives no traceback either) and again after pycolmap is imported, whose glog failure handler
-would otherwise answer SIGTERM with a C stack dump.
+Signals are handled by `recon._signals`, installed by `recon/__init__.py` before anything heavy
+is imported (so Ctrl-C in the first second gives no traceback either) and kept in place when
+pycolmap is imported (its glog failure handler would answer SIGTERM with a C stack dump).
 """
 
 from __future__ import annotations
@@ -30,101 +30,13 @@ import os
 import signal
 import sys
 
-# signals first: everything below (typer, OpenCV via `matching`) takes a noticeable time to import
-_SIGNAL: int | None = None  # the first SIGINT / SIGTERM received by this command
-_PREVIOUS: dict[int, object] = {}
+import typer
 
+from matching.errors import InputError
+from recon import _signals
+from recon.errors import UserError
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised like Ctrl-C so that every `finally` (temporary files, locks) runs."""
-
-
-def _on_signal(signum: int, _frame: object) -> None:
-    global _SIGNAL
-    if _SIGNAL is not None:  # a second signal: the user insists
-        try:
-            os.write(2, b"recon: interrupted again; exiting now\n")
-        finally:
-            os._exit(128 + signum)
-    _SIGNAL = signum
-    raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
-
-
-def _install_signal_handlers() -> None:
-    """SIGINT and SIGTERM -> `_on_signal` (main thread only; elsewhere a no-op)."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            prev = signal.signal(sig, _on_signal)
-        except (ValueError, OSError):  # not the main thread
-            return
-        _PREVIOUS.setdefault(sig, prev)
-
-
-def _restore_signal_handlers() -> None:
-    for sig, prev in list(_PREVIOUS.items()):
-        try:
-            signal.signal(sig, prev)  # type: ignore[arg-type]
-        except (ValueError, OSError, TypeError):
-            pass
-    _PREVIOUS.clear()
-
-
-class _AfterPycolmapImport:
-    """A one-shot import hook: once pycolmap is imported (its glog failure handler replaces the
-    SIGTERM handler), install ours again."""
-
-    def find_spec(self, fullname: str, path=None, target=None):
-        if fullname != "pycolmap":
-            return None
-        import importlib.util
-
-        sys.meta_path[:] = [f for f in sys.meta_path if f is not self]
-        spec = importlib.util.find_spec(fullname)
-        loader = getattr(spec, "loader", None)
-        if spec is None or loader is None or not hasattr(loader, "exec_module"):
-            return spec
-        exec_module = loader.exec_module
-
-        def exec_then_reinstall(module) -> None:
-            exec_module(module)
-            if _PREVIOUS:
-                _install_signal_handlers()
-
-        loader.exec_module = exec_then_reinstall  # type: ignore[method-assign]
-        return spec
-
-
-def _watch_pycolmap_import() -> None:
-    if "pycolmap" in sys.modules:
-        _install_signal_handlers()
-    elif not any(isinstance(f, _AfterPycolmapImport) for f in sys.meta_path):
-        sys.meta_path.insert(0, _AfterPycolmapImport())
-
-
-def _is_program_entry() -> bool:
-    """True when this process is the `recon` program (console script or `python -m recon`)."""
-    main_file = str(getattr(sys.modules.get("__main__"), "__file__", "") or "")
-    return os.path.basename(main_file) == "recon" or main_file.endswith(os.path.join("recon", "__main__.py"))
-
-
-def _interrupted_exit(signum: int | None) -> None:
-    sig = signum or signal.SIGINT
-    print("recon: " + ("terminated" if sig == signal.SIGTERM else "interrupted")
-          + "; rerun the same command to resume", file=sys.stderr)
-    raise SystemExit(128 + sig)
-
-
-if _is_program_entry():
-    _install_signal_handlers()
-    _watch_pycolmap_import()
-
-try:
-    import typer
-
-    from matching.errors import InputError
-    from recon.errors import UserError
-except KeyboardInterrupt:  # Ctrl-C while importing: one line, no traceback
-    _interrupted_exit(_SIGNAL)
+Terminated = _signals.Terminated
 
 app = typer.Typer(
     name="recon",
@@ -270,14 +182,15 @@ def _exit_code_for(e: BaseException, argv: list[str] | None) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit code (see module doc). Never raises, never a traceback
     (except with -v / RECON_DEBUG=1 for an internal error)."""
-    global _SIGNAL
-    entry = _is_program_entry()
-    _SIGNAL = None
-    _install_signal_handlers()
-    _watch_pycolmap_import()
-    code: int
+    entry = _signals.is_program_entry()
+    if not entry:
+        _signals.reset()  # a library caller (tests) may call main several times
+    _signals.install(raising=True)
+    code = 1
     try:
         try:
+            if _signals.received is not None:  # a signal while the modules were importing
+                raise KeyboardInterrupt
             from matching.memory import return_large_buffers_to_os
 
             return_large_buffers_to_os()
@@ -293,13 +206,14 @@ def main(argv: list[str] | None = None) -> int:
             if not isinstance(e.code, (int, type(None))):
                 print(f"recon: error: {e.code}", file=sys.stderr)
         except BaseException as e:  # noqa: BLE001  (the one place that turns exceptions into lines)
-            exits = _click_exception_types("Exit")
-            if isinstance(e, exits):
+            if _signals.received is not None:
+                code = 130  # a consequence of the signal (e.g. a library half-imported): one line below
+            elif isinstance(e, _click_exception_types("Exit")):
                 code = int(getattr(e, "exit_code", 0) or 0)
             else:
                 code = _exit_code_for(e, argv)
-        if _SIGNAL is not None or code == 130:
-            sig = _SIGNAL or signal.SIGINT
+        if _signals.received is not None or code == 130:
+            sig = _signals.received or signal.SIGINT
             print("recon: " + ("terminated" if sig == signal.SIGTERM else "interrupted")
                   + "; rerun the same command to resume", file=sys.stderr)
             code = 128 + sig
@@ -312,12 +226,13 @@ def main(argv: list[str] | None = None) -> int:
                 pass
         return code
     except KeyboardInterrupt:  # a signal while printing the message above
-        return 128 + (_SIGNAL or signal.SIGINT)
+        code = 128 + (_signals.received or signal.SIGINT)
+        return code
     finally:
         if not entry:  # a library caller (tests) keeps its own handlers
-            _restore_signal_handlers()
+            _signals.restore()
         else:
-            _exit_now_if_rerun_abandoned(code if "code" in locals() else 1)
+            _exit_now_if_rerun_abandoned(code)
 
 
 def _exit_now_if_rerun_abandoned(code: int) -> None:

@@ -65,8 +65,11 @@ def register(app: typer.Typer) -> None:
             raise UserError("the Rerun viewer (`rerun`) is not installed; `pip install rerun-sdk` "
                             f"or open {rrd} at https://rerun.io/viewer")
         check_recording(rrd)
+        from recon._signals import unblocked_for_children
+
         try:
-            code = subprocess.call([exe, str(rrd)])
+            with unblocked_for_children():  # the viewer must answer Ctrl-C / SIGTERM itself
+                code = subprocess.call([exe, str(rrd)])
         except OSError as e:
             raise UserError(f"cannot start the Rerun viewer {exe}: {e.strerror or e}") from None
         if code:

@@ -377,7 +377,10 @@ class RerunLogger:
             exe = find_viewer()
             if exe is None:
                 raise RuntimeError("the Rerun viewer (`rerun`) is not installed; use --rerun save instead")
-            rr.spawn(executable_path=exe, recording=rec, connect=True)
+            from recon._signals import unblocked_for_children
+
+            with unblocked_for_children():  # the viewer process must be able to be terminated
+                rr.spawn(executable_path=exe, recording=rec, connect=True)
         else:  # connect
             rec.connect_grpc(self.sink.target)
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_DOWN, static=True)  # COLMAP: y down, z forward
