@@ -18,8 +18,10 @@ watcher thread takes it with `sigwait` and forwards it to the main thread as `FO
 (the Rerun viewer) are started inside `unblocked_for_children()` so that they can be
 terminated normally.
 
-A second signal exits at once (`os._exit`). A signal the parent set to be ignored (`nohup`, a
-shell's background job) stays ignored. A signal that arrives while Python itself starts (the
+While a native package imports (`DEFER_DURING_IMPORT`), a signal is held until the import is
+complete: an exception inside a pybind11 module's initialisation becomes an ImportError that a
+package may swallow. A second signal exits at once (`os._exit`). A signal the parent set to be
+ignored (`nohup`, a shell's background job) stays ignored. A signal that arrives while Python itself starts (the
 first ~50 ms, before any recon code runs) gets Python's default behaviour.
 """
 
@@ -33,8 +35,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 FORWARD = signal.SIGUSR2  # SIGTERM, forwarded by the watcher thread to the main thread
+# native packages whose import must not be interrupted half-way: pybind11 turns an exception in
+# a module's initialisation into ImportError, which a package may swallow (pycolmap without
+# pyceres) or turn into a misleading "Cannot import the C++ backend"
+DEFER_DURING_IMPORT = ("pycolmap", "pyceres", "open3d", "rerun", "rerun_bindings", "cv2", "pyarrow")
 received: int | None = None  # the first SIGINT / SIGTERM of this command
 _raising = False
+_deferring = 0  # > 0 while one of DEFER_DURING_IMPORT imports
 _previous: dict[int, object] = {}
 _watcher: threading.Thread | None = None
 
@@ -51,7 +58,7 @@ def _note(signum: int) -> None:
         finally:
             os._exit(128 + signum)
     received = signum
-    if _raising:
+    if _raising and not _deferring:
         raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
@@ -130,6 +137,8 @@ def install(raising: bool) -> None:
         _set(sig, handler)
     if _watcher is not None:
         _set(FORWARD, _on_sigterm)
+    if not any(isinstance(f, _DeferDuringImport) for f in sys.meta_path):
+        sys.meta_path.insert(0, _DeferDuringImport())
 
 
 def restore() -> None:
@@ -169,3 +178,36 @@ def unblocked_for_children() -> Iterator[None]:
             signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
         except (OSError, ValueError):
             pass
+
+
+class _DeferDuringImport:
+    """Import hook: a signal that arrives while one of `DEFER_DURING_IMPORT` imports is recorded
+    and raised once that import is complete (see the note at `DEFER_DURING_IMPORT`)."""
+
+    def find_spec(self, fullname: str, path=None, target=None):
+        if fullname not in DEFER_DURING_IMPORT:
+            return None
+        import importlib.util
+
+        sys.meta_path[:] = [f for f in sys.meta_path if f is not self]
+        try:
+            spec = importlib.util.find_spec(fullname)
+        finally:
+            sys.meta_path.insert(0, self)
+        loader = getattr(spec, "loader", None)
+        if spec is None or loader is None or not hasattr(loader, "exec_module"):
+            return spec
+        exec_module = loader.exec_module
+
+        def deferred_exec(module) -> None:
+            global _deferring
+            _deferring += 1
+            try:
+                exec_module(module)
+            finally:
+                _deferring -= 1
+            if received is not None and _raising and not _deferring:
+                raise Terminated() if received == signal.SIGTERM else KeyboardInterrupt()
+
+        loader.exec_module = deferred_exec  # type: ignore[method-assign]
+        return spec

@@ -11,7 +11,8 @@
     quote counts only at the start of a name, so apostrophes inside one need nothing
     (`l'église.jpg`); there is no escaping inside quotes;
   - or the line is tab-separated (it holds a tab): each field is a name taken verbatim
-    (spaces and quotes included), surrounding spaces stripped;
+    (spaces, quotes and `#` inside included), surrounding spaces stripped, and one pair of
+    quotes around the whole field removed;
   - `#` starts a comment only at the start of a line or after whitespace (`# note`,
     `a.jpg b.jpg  # note`, a field starting with `#`); inside a name (`photo#2.jpg`) it is part
     of the name. A name that starts with `#` must be quoted;
@@ -89,6 +90,8 @@ def split_pairs_line(line: str) -> list[str]:
             f = field.strip()
             if f.startswith("#"):  # a comment: at the line's start or after a tab
                 break
+            if len(f) >= 2 and f[0] == f[-1] and f[0] in "\"'":  # quoted anyway
+                f = f[1:-1]
             if f:
                 names.append(f)
         return names

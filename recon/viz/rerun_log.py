@@ -39,6 +39,10 @@ thread (`finish_stream`) and gives up after `CLOSE_TIMEOUT_S` (`SAVE_CLOSE_TIMEO
 file's flush, `DISCONNECT_TIMEOUT_S` for the disconnect) with one warning, and the unfinished
 file is deleted; Ctrl-C still works while it waits. The viewer can be chosen with
 `RECON_RERUN_VIEWER=/path/to/rerun` (see `find_viewer`).
+
+An absent viewer costs one warning and nothing else: `connect` checks that something listens at
+the URL before streaming, and `spawn` starts the viewer itself (`spawn_viewer`) and stops at
+once when it exits (a machine without a display) instead of buffering the recording for it.
 """
 
 from __future__ import annotations
@@ -112,6 +116,61 @@ def find_viewer() -> str | None:
         return shutil.which(chosen) if chosen.strip() else None
     here = str(Path(sys.executable).parent)
     return shutil.which("rerun", path=os.pathsep.join([here, os.environ.get("PATH", "")]))
+
+
+DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+SPAWN_TIMEOUT_S = 10.0  # how long a spawned viewer may take to listen
+
+
+def viewer_address(url: str | None) -> tuple[str, int]:
+    """(host, port) of a `connect` URL (rerun's default when None)."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url or DEFAULT_URL)
+    return parts.hostname or "127.0.0.1", parts.port or 9876
+
+
+def port_is_open(host: str, port: int, timeout_s: float = 1.0) -> bool:
+    import socket
+
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+def spawn_viewer(exe: str, port: int = 9876) -> str:
+    """Start the Rerun viewer listening on `port` (or reuse one already listening) and return its
+    URL. RuntimeError (one line, with the viewer's last error line) when it exits before
+    listening, e.g. on a machine without a display, or does not listen within
+    `SPAWN_TIMEOUT_S`: then nothing is buffered for a viewer that will never come (rerun's own
+    `spawn` waits, then buffers the whole recording for it)."""
+    import subprocess
+    import tempfile
+
+    from recon._signals import unblocked_for_children
+
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    if port_is_open("127.0.0.1", port, 0.2):
+        return url
+    with tempfile.TemporaryFile() as err:
+        with unblocked_for_children():  # the viewer process must be able to be terminated
+            proc = subprocess.Popen([exe, f"--port={port}", "--memory-limit=75%", "--expect-data-soon"],
+                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                                    start_new_session=True, env={**os.environ, "RERUN_APP_ONLY": "true"})
+        deadline = time.monotonic() + SPAWN_TIMEOUT_S
+        while time.monotonic() < deadline:
+            code = proc.poll()
+            if code is not None:
+                err.seek(0)
+                lines = [ln.strip() for ln in err.read().decode(errors="replace").splitlines() if ln.strip()]
+                why = f": {lines[-1][:200]}" if lines else ""
+                raise RuntimeError(f"the Rerun viewer {exe} exited at once (code {code}{why})")
+            if port_is_open("127.0.0.1", port, 0.2):
+                return url
+            time.sleep(0.1)
+    raise RuntimeError(f"the Rerun viewer {exe} did not listen on port {port} within {SPAWN_TIMEOUT_S:.0f} s")
 
 
 def finish_stream(rec: Any, flush_timeout_s: float, disconnect_timeout_s: float = DISCONNECT_TIMEOUT_S) -> str | None:
@@ -377,11 +436,12 @@ class RerunLogger:
             exe = find_viewer()
             if exe is None:
                 raise RuntimeError("the Rerun viewer (`rerun`) is not installed; use --rerun save instead")
-            from recon._signals import unblocked_for_children
-
-            with unblocked_for_children():  # the viewer process must be able to be terminated
-                rr.spawn(executable_path=exe, recording=rec, connect=True)
+            rec.connect_grpc(spawn_viewer(exe))
         else:  # connect
+            host, port = viewer_address(self.sink.target)
+            if not port_is_open(host, port):
+                raise RuntimeError(f"no Rerun viewer is listening at {self.sink.target or DEFAULT_URL} (start one "
+                                   f"with `rerun`, or use --rerun save)")
             rec.connect_grpc(self.sink.target)
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_DOWN, static=True)  # COLMAP: y down, z forward
         self.rec = rec
@@ -402,9 +462,9 @@ class RerunLogger:
                     print(f"recon: warning: the Rerun recording {self.sink.target} could not be completed "
                           f"({problem}); the run's outputs are complete", file=sys.stderr)
                 else:
-                    where = self.sink.target or "the default address (rerun+http://127.0.0.1:9876/proxy)"
+                    where = self.sink.target or DEFAULT_URL
                     print(f"recon: warning: the Rerun viewer at {where} did not take the recording ({problem}; "
-                          f"is a viewer running?); the run's outputs are complete", file=sys.stderr)
+                          f"was it closed?); the run's outputs are complete", file=sys.stderr)
         if self._tmp is None:
             return None
         tmp, self._tmp = self._tmp, None
