@@ -45,3 +45,12 @@ def scene(rendered, tmp_path) -> Path:
     d = tmp_path / "scene"
     shutil.copytree(rendered, d, ignore=shutil.ignore_patterns(".recon*"))
     return d
+
+
+def pytest_collection_modifyitems(config, items):
+    """The whole suite is `slow` (about 65 subprocess runs; `make test` and CI run it,
+    `make test-fast` does not)."""
+    here = Path(__file__).parent
+    for item in items:
+        if here in Path(str(item.fspath)).parents:
+            item.add_marker(pytest.mark.slow)
