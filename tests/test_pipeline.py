@@ -201,9 +201,9 @@ def test_resume_recomputes_only_missing_pairs(scene, first_run, tmp_path):
     again, _ = _run(scene, out)
     assert again.pairs_computed == 0 and again.database_reused and again.model_reused
     assert again.registered_images == rep1.registered_images and again.num_points3D == rep.num_points3D
-    # --overwrite starts over
+    # --overwrite starts over, keeping the content-addressed caches (features, pair results)
     fresh, _ = _run(scene, out, overwrite=True)
-    assert fresh.pairs_computed == len(fresh.pairs) and not fresh.database_reused
+    assert fresh.pairs_cached == len(fresh.pairs) and not fresh.database_reused and not fresh.model_reused
 
 
 @needs_data

@@ -9,8 +9,9 @@ Exit codes:
 * 0: done.
 * 1: the command ran but gave no result (`recon run` found no model), an unexpected internal
   error ("recon: internal error: <type>: <message> (rerun with -v for the traceback)"; with
-  `-v` or `RECON_DEBUG=1` the traceback is printed), or an environment failure the user cannot
-  fix by changing the command (an I/O error, out of memory).
+  `-v` or `RECON_DEBUG=1` the traceback is printed; the hint names RECON_DEBUG=1 while the app
+  has no -v option), or an environment failure the user cannot fix by changing the command (an
+  I/O error, out of memory).
 * 2: refused or stopped for a reason the user can fix, named on one line: a bad option or
   usage, an unusable input file or folder, an output folder that is not ours or is in use by
   another run, or a file-system problem with a path (permission denied, not a folder, no space
@@ -174,9 +175,19 @@ def _exit_code_for(e: BaseException, argv: list[str] | None) -> int:
         import traceback
 
         traceback.print_exception(e)
+    how = "-v" if _has_verbose_option() else "RECON_DEBUG=1"
     print(f"recon: internal error: {type(e).__name__}: {' '.join(str(e).split())} "
-          f"(rerun with -v for the traceback)", file=sys.stderr)
+          f"(rerun with {how} for the traceback)", file=sys.stderr)
     return 1
+
+
+def _has_verbose_option() -> bool:
+    """True when the app has a top-level -v/--verbose option (an `@app.callback()`)."""
+    try:
+        cmd = typer.main.get_command(app)
+        return any(o in ("-v", "--verbose") for p in cmd.params for o in getattr(p, "opts", ()))
+    except Exception:
+        return False
 
 
 def main(argv: list[str] | None = None) -> int:

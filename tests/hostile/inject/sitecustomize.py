@@ -7,9 +7,10 @@ signals and races are tested deterministically rather than with sleeps:
   (while pycolmap's extension initialises, its glog handler already in place), `load` (after the first image is
   decoded), `match` (after the second pair result is written to the cache), `sfm` (at the first
   registration step, inside COLMAP's mapper), `export` (before points.ply is written);
-* ACTION: `SIGINT` / `SIGTERM` (the process signals itself: the real signal path), or
-  `pause` (create `$RECON_HOSTILE_FLAG.paused`, then wait until `$RECON_HOSTILE_FLAG.go` exists:
-  lets a test start a second run while this one holds the output folder).
+* ACTION: `SIGINT` / `SIGTERM` (the process signals itself: the real signal path), `pause`
+  (create `$RECON_HOSTILE_FLAG.paused`, then wait until `$RECON_HOSTILE_FLAG.go` exists: lets a
+  test start a second run while this one holds the output folder), `bug` (an unexpected
+  exception, as a programming error would raise) or `eacces` (a PermissionError naming a file).
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ def _act(action: str) -> None:
         os.kill(os.getpid(), getattr(signal, action))
         time.sleep(0.5)  # let the signal arrive here, inside the stage
         return
+    if action == "bug":
+        raise ZeroDivisionError("injected bug")
+    if action == "eacces":
+        raise PermissionError(13, "Permission denied", "/injected/cache/file.npz")
     if action == "pause":
         flag = os.environ["RECON_HOSTILE_FLAG"]
         open(flag + ".paused", "w").close()
