@@ -37,8 +37,6 @@ from matching.errors import InputError
 from recon import _signals
 from recon.errors import UserError
 
-Terminated = _signals.Terminated
-
 app = typer.Typer(
     name="recon",
     help="Extra-affine wide-viewpoint matching and COLMAP reconstruction.",

@@ -35,7 +35,10 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   initialise ("needs a third view"). With two-view tracks kept, the mapper builds the model from
   the verified relative pose of the pair (essential / fundamental matrix, COLMAP's own two-view
   geometry) and triangulates its inliers; scale is arbitrary, as for any model without GPS.
-  `run_incremental` applies this by itself when the database holds exactly two images.
+  `run_incremental` applies this by itself when the database holds exactly two images. Two
+  views barely constrain the focal length, so the model is as good as the focal prior: with an
+  EXIF focal length the relative rotation of a rendered pair 20 deg apart is within 0.5 deg of
+  the truth; without one (prior 1.2 * max(w, h), here 33 % too long) it is off by 6 deg.
 * thresholds in pixels (`init_max_error`, `filter_max_reproj_error`, triangulation reprojection
   errors) are multiplied by `px_scale`, the working-to-full-resolution factor (capped at 3): the
   matcher localises keypoints to about a pixel *of the working image*, which is `px_scale`
