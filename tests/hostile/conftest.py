@@ -48,7 +48,7 @@ def scene(rendered, tmp_path) -> Path:
 
 
 def pytest_collection_modifyitems(config, items):
-    """The whole suite is `slow` (about 65 subprocess runs; `make test` and CI run it,
+    """The whole suite is `slow` (68 tests, some 90 CLI runs; `make test` and CI run it,
     `make test-fast` does not)."""
     here = Path(__file__).parent
     for item in items:
