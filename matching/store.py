@@ -6,6 +6,11 @@ ask for it at the same moment (a per-key lock), so pairs can run in a thread poo
 `cache_dir`, entries also persist as `.npz` files named by a hash of the image content and the
 key, so an interrupted run resumes without recomputing; files are written to a temporary name
 and renamed, so a kill never leaves a half-written cache entry.
+
+The disk cache is an optimisation, never a reason for a pair to fail: when a write fails (a full
+disk, a read-only cache folder) the temporary file is removed, the error is kept in
+`persist_error` and later entries stay in memory only. (The caller's own writes, e.g. the
+pipeline's pair cache, then report the full disk and stop the run.)
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ class FeatureStore:
         self._guard = threading.Lock()
         self.hits = 0
         self.misses = 0
+        self.persist_error: OSError | None = None  # the first failed cache write (persisting then stops)
 
     # images -------------------------------------------------------------------------------
     def add_image(self, name: str, gray: NDArray[np.uint8]) -> None:
@@ -116,11 +122,24 @@ class FeatureStore:
 
     def _save(self, name: str, key: str, f: Features) -> None:
         p = self._path(name, key)
-        if p is None:
+        if p is None or self.persist_error is not None:
             return
-        p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_name(f"{p.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
         extra = {} if f.responses is None else {"responses": f.responses}
-        np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles,
-                 descriptors=f.descriptors, **extra)
-        os.replace(tmp, p)
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles,
+                     descriptors=f.descriptors, **extra)
+            os.replace(tmp, p)
+        except OSError as e:  # see module doc: keep computing in memory
+            if e.filename is None:
+                e.filename = str(p)
+            with self._guard:
+                if self.persist_error is None:
+                    self.persist_error = e
+        finally:
+            if tmp.exists():
+                try:
+                    tmp.unlink()
+                except OSError:
+                    pass

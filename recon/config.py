@@ -64,7 +64,10 @@ class OutputConfig:
     """Output folder (default: SCENE_DIR/recon)."""
 
     overwrite: bool = field(default=False, metadata={"flag": "--overwrite"})
-    """Delete this tool's outputs in the output folder and start over."""
+    """Delete this tool's outputs in the output folder and start over (the content-addressed match cache is kept)."""
+
+    clean_cache: bool = field(default=False, metadata={"flag": "--clean-cache"})
+    """Also delete the cached features and pair matches in the output folder."""
 
     clean_points: bool = field(default=False, metadata={"flag": "--clean-points"})
     """Drop statistical outliers from points.ply."""

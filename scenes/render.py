@@ -11,6 +11,12 @@ cx = width / 2), with poses as cam_from_world (x right, y down, z forward).
 Everything is written into a temporary folder beside OUT_DIR and renamed into place, so an
 interrupted render never leaves half a scene; `--overwrite` replaces OUT_DIR/images and
 OUT_DIR/gt only, never other files in OUT_DIR. Same preset + seed = byte-identical files.
+
+Ownership: a render leaves `OUT_DIR/.recon_render.json` (`RENDER_MARKER`). An existing
+non-empty `images/` or `gt/` is replaced (with `--overwrite`) only when that marker says this
+command made them (or, for scenes rendered before the marker existed, when `gt/scene.json` is a
+render's and names every file in `images/`); anything else (a user's photos, their ground
+truth) is refused and never touched, with or without `--overwrite` (`check_render_target`).
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from .texture import photo_texture, procedural_texture
 
 SUPERSAMPLE = 3
 SKY_BGR = (225, 205, 190)
+RENDER_MARKER = ".recon_render.json"  # in OUT_DIR: this command made OUT_DIR/images and OUT_DIR/gt
 
 
 @dataclass
@@ -182,6 +189,40 @@ def _non_empty_dir(path: Path) -> bool:
     return path.is_dir() and any(path.iterdir())
 
 
+def made_by_render(out_dir: Path) -> bool:
+    """True when OUT_DIR/images and OUT_DIR/gt were made by `render_scene` (see module doc)."""
+    if (out_dir / RENDER_MARKER).is_file():
+        return True
+    try:  # a render from before the marker existed
+        meta = json.loads((out_dir / "gt" / "scene.json").read_text(encoding="utf-8"))
+        rendered = set(meta["viewing_angles_deg"]) if "preset" in meta else set()
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    present = {p.name for p in (out_dir / "images").iterdir()} if (out_dir / "images").is_dir() else set()
+    return bool(rendered) and present <= rendered
+
+
+def check_render_target(out_dir: str | Path, overwrite: bool) -> None:
+    """InputError (one line) unless `render_scene` may write OUT_DIR/images and OUT_DIR/gt;
+    reads only (see module doc)."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"{out_dir}: exists and is not a folder")
+    probe = out_dir
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise InputError(f"{out_dir}: {probe} is a file, not a folder")
+    taken = [d for d in ("images", "gt") if _non_empty_dir(out_dir / d) or (out_dir / d).is_file()]
+    if not taken:
+        return
+    if not made_by_render(out_dir):
+        raise InputError(f"{out_dir / taken[0]} holds files that recon render-scene did not make; it never replaces "
+                         f"them (with or without --overwrite): choose another folder")
+    if not overwrite:
+        raise InputError(f"{out_dir / taken[0]}: folder is not empty; pass --overwrite to replace the scene")
+
+
 def _swap_into_place(tmp: Path, out_dir: Path, parts: tuple[str, ...]) -> None:
     """Move `tmp/<part>` to `out_dir/<part>` for each part, replacing only those subfolders.
 
@@ -219,8 +260,9 @@ def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: li
                  overwrite: bool = False) -> RenderedScene:
     """Render `preset` into OUT_DIR/images and OUT_DIR/gt (see module doc).
 
-    Raises ValueError for an unknown preset, InputError for a missing texture or a non-empty
-    OUT_DIR/images without `overwrite` (which replaces images/ and gt/ only).
+    Raises ValueError for an unknown preset, InputError for a missing texture, a non-empty
+    OUT_DIR/images or OUT_DIR/gt without `overwrite` (which replaces images/ and gt/ only), or
+    ones this function did not make (see `check_render_target`).
     """
     out_dir = Path(out_dir)
     p = get_preset(preset)
@@ -228,10 +270,7 @@ def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: li
         scale = image_size[0] / p.image_size[0]
         p = ScenePreset(p.name, p.description, p.planes, p.cameras, tuple(image_size), p.focal_px * scale,
                         p.px_per_m * max(1.0, scale) if scale > 1 else p.px_per_m, p.noise_sigma)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"{out_dir}: exists and is not a folder")
-    if _non_empty_dir(out_dir / "images") and not overwrite:
-        raise InputError(f"{out_dir / 'images'}: folder is not empty; pass --overwrite to replace the scene")
+    check_render_target(out_dir, overwrite)
     texs = _textures(p, [Path(t) for t in textures] if textures else None, seed)
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5CE7E])
     K = intrinsics(p)
@@ -254,6 +293,10 @@ def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: li
             "max_viewing_angle_deg": max((max(a.values()) for a in angles if a), default=0.0),
         }
         (tmp / "gt" / "scene.json").write_text(json.dumps(meta, indent=2))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        # before anything is swapped in: images/ and gt/ are ours from here on
+        (out_dir / RENDER_MARKER).write_text(json.dumps({"command": "render-scene", "preset": p.name,
+                                                         "images": names}, indent=1))
         _swap_into_place(tmp, out_dir, ("gt", "images"))
     except BaseException:  # Ctrl-C or an error mid-render: leave no temporary folder behind
         shutil.rmtree(tmp, ignore_errors=True)

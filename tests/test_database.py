@@ -10,8 +10,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from recon.core.database import (build_database, import_scene_images, read_keypoints_opencv, read_verified,
-                            two_view_options, write_keypoints_and_matches)
+from recon.core.database import (build_database, database_is_sound, database_problem, estimate_database_bytes,
+                                 import_scene_images, read_keypoints_opencv, read_verified, require_free_space,
+                                 two_view_options, write_keypoints_and_matches)
 
 
 def _write_images(d: Path, sizes) -> list[str]:
@@ -184,3 +185,66 @@ def test_verification_drops_wrong_matches(tmp_path):
         assert right >= 115, (a, b, right)  # of the 120 right matches
         kept_wrong += len(inl) - right
     assert kept_wrong <= 30  # of 300 (measured 20): a wrong match that lies on its epipolar line stays
+
+
+
+def test_soundness_check_finds_damage_a_fingerprint_cannot_see(tmp_path):
+    import os
+    import shutil
+
+    names = _write_images(tmp_path / "images", [(160, 120)] * 2)
+    good = tmp_path / "database.db"
+    import_scene_images(good, tmp_path / "images", names, "auto")
+    assert database_is_sound(good) and database_problem(good) is None
+    before = good.read_bytes()
+    assert database_problem(tmp_path / "none.db") == "missing"
+
+    damaged = tmp_path / "damaged.db"  # pages overwritten, the SQLite header intact
+    data = bytearray(before)
+    data[len(data) // 2: len(data) // 2 + 4096] = os.urandom(4096)
+    damaged.write_bytes(bytes(data))
+    assert not database_is_sound(damaged)
+
+    text = tmp_path / "text.db"
+    text.write_text("not a database")
+    assert not database_is_sound(text)
+
+    truncated = tmp_path / "truncated.db"
+    truncated.write_bytes(before[: len(before) // 3])
+    assert not database_is_sound(truncated)
+
+    other = tmp_path / "other.db"  # a valid SQLite file that is not a COLMAP database
+    import sqlite3
+
+    con = sqlite3.connect(other)
+    con.execute("CREATE TABLE notes (x)")
+    con.commit()
+    con.close()
+    assert "not a COLMAP database" in database_problem(other)
+
+    empty = tmp_path / "empty.db"  # the schema, but no image
+    shutil.copy(good, empty)
+    con = sqlite3.connect(empty)
+    con.execute("DELETE FROM images")
+    con.commit()
+    con.close()
+    assert database_problem(empty) == "no images"
+    assert good.read_bytes() == before  # checking never writes
+
+
+def test_free_space_is_checked_before_colmap_writes(tmp_path, monkeypatch):
+    import errno
+    import shutil
+    from collections import namedtuple
+
+    assert estimate_database_bytes(100, 100_000, 500_000, 1000) > 3 * (24 * 100_000 + 16 * 500_000)
+    require_free_space(tmp_path / "database.db", 1)  # plenty
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 20, 10 << 20, 4096))
+    with pytest.raises(OSError) as e:
+        require_free_space(tmp_path / "database.db", 1 << 20)
+    assert e.value.errno == errno.ENOSPC and e.value.filename == str(tmp_path / "database.db")
+    names = _write_images(tmp_path / "images", [(160, 120)] * 2)
+    with pytest.raises(OSError):  # refused before pycolmap could abort the process
+        import_scene_images(tmp_path / "database.db", tmp_path / "images", names, "auto")
+    assert not (tmp_path / "database.db").exists()

@@ -213,9 +213,9 @@ def test_resume_recomputes_only_missing_pairs(scene, first_run, tmp_path):
     again, _ = _run(scene, out)
     assert again.pairs_computed == 0 and again.database_reused and again.model_reused
     assert again.registered_images == rep1.registered_images and again.num_points3D == rep.num_points3D
-    # --overwrite starts over
+    # --overwrite starts over, keeping the content-addressed caches (features, pair results)
     fresh, _ = _run(scene, out, overwrite=True)
-    assert fresh.pairs_computed == len(fresh.pairs) and not fresh.database_reused
+    assert fresh.pairs_cached == len(fresh.pairs) and not fresh.database_reused and not fresh.model_reused
 
 
 @pytest.mark.slow
@@ -348,11 +348,12 @@ def test_cli_refuses_output_of_another_scene(scene, first_run, tmp_path, capsys)
         rc, _, err = _cli(capsys, other, "--out", stray, *extra)
         assert rc == 2 and "not a recon output folder" in err
         assert (stray / "thesis.tex").exists() and (stray / "cache").is_dir()
-    # --overwrite replaces the other scene's reconstruction
+    # --overwrite replaces the other scene's reconstruction, keeping the content-addressed pair
+    # cache (the three images are the first scene's: every pair is reused)
     rc, _, err = _cli(capsys, other, "--out", out, "--overwrite")
     assert rc == 0, err
     rep = json.loads((out / "report.json").read_text())
-    assert rep["scene"] == str(other.resolve()) and rep["pairs_computed"] == 3
+    assert rep["scene"] == str(other.resolve()) and rep["pairs_cached"] == 3 and rep["pairs_computed"] == 0
 
 
 @pytest.mark.slow
@@ -392,6 +393,8 @@ def test_cli_ctrl_c_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(recon.core.pipeline, "run_scene", interrupted)
+    for name in ("a.png", "b.png"):  # the CLI checks for image files before the run starts
+        (tmp_path / name).write_bytes(b"")
     rc = main(["run", str(tmp_path), "--method", "sift", "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 130 and "Traceback" not in err and "rerun the same command to resume" in err

@@ -10,8 +10,9 @@ import pytest
 
 from matching.errors import InputError
 from matching.io import resize_max
-from recon.core.pairs import make_pairs, parse_pairs_spec
-from recon.core.scene import find_image_dir, scan_scene, to_full_res
+from recon.core.pairs import check_pairs_names, make_pairs, parse_pairs_spec, split_pairs_line
+from recon.core.scene import find_image_dir, require_images, scan_scene, to_full_res
+from recon.errors import UserError
 
 
 def _img(seed: int, w: int = 120, h: int = 90) -> np.ndarray:
@@ -121,3 +122,59 @@ def test_pairs_file(tmp_path):
     bad.write_text("onlyone.jpg\n")
     with pytest.raises(InputError, match=r"bad.txt:1"):
         make_pairs(parse_pairs_spec(str(bad)), ["onlyone.jpg"])
+
+
+@pytest.mark.parametrize("line, names", [
+    ("a.jpg b.jpg", ["a.jpg", "b.jpg"]),
+    ("photo#2.jpg b.jpg  # a comment after whitespace", ["photo#2.jpg", "b.jpg"]),
+    ("   # a whole-line comment", []),
+    ("l'église.jpg 'my photo.jpg' 0.93", ["l'église.jpg", "my photo.jpg", "0.93"]),
+    ('"#starts with a hash.png" b.png', ["#starts with a hash.png", "b.png"]),
+    ("my photo.jpg\tother one.jpg\t0.5", ["my photo.jpg", "other one.jpg", "0.5"]),
+    ("\"quoted anyway.jpg\"\tl'été.jpg\t# note", ["quoted anyway.jpg", "l'été.jpg"]),
+    ("", []),
+])
+def test_pairs_line_syntax(line, names):
+    assert split_pairs_line(line) == names
+
+
+@pytest.mark.parametrize("line", ['"unclosed.jpg b.jpg', 'a.jpg "b"c.jpg', '"" b.jpg'])
+def test_malformed_pairs_lines(line):
+    with pytest.raises(ValueError):
+        split_pairs_line(line)
+
+
+def test_pairs_file_names_are_checked_before_decoding(tmp_path):
+    f = tmp_path / "pairs.txt"
+    f.write_text("IMG_1.JPG IMG_2.JPG\n")
+    with pytest.raises(InputError, match="IMG_1.JPG"):
+        check_pairs_names(parse_pairs_spec(str(f)), ["a.jpg", "b.jpg"])
+    f.write_text("a.jpg a.jpg\n")
+    with pytest.raises(InputError, match="twice"):
+        check_pairs_names(parse_pairs_spec(str(f)), ["a.jpg", "b.jpg"])
+    f.write_text("# nothing\n")
+    with pytest.raises(InputError, match="no pair"):
+        check_pairs_names(parse_pairs_spec(str(f)), ["a.jpg", "b.jpg"])
+    f.write_text("a.jpg gone.jpg\nb.jpg a.jpg\n")  # one usable pair is enough (the other is dropped later)
+    check_pairs_names(parse_pairs_spec(str(f)), ["a.jpg", "b.jpg"])
+    check_pairs_names(parse_pairs_spec("exhaustive"), [])
+
+
+def test_require_images_and_entries_that_are_not_files(tmp_path):
+    import os
+
+    with pytest.raises(InputError, match="no images"):
+        require_images(tmp_path)
+    _write(tmp_path / "a.png", _img(0))
+    with pytest.raises(UserError, match="at least 2"):
+        require_images(tmp_path)
+    _write(tmp_path / "b.png", _img(1))
+    (tmp_path / "dir.png").mkdir()
+    (tmp_path / "gone.jpg").symlink_to(tmp_path / "nowhere.jpg")
+    os.mkfifo(tmp_path / "pipe.jpg")
+    image_dir, names = require_images(tmp_path)
+    assert image_dir == tmp_path and names == ["a.png", "b.png"]
+    scene, _ = scan_scene(tmp_path, max_size=None)
+    assert scene.names == ["a.png", "b.png"]
+    (w,) = [w for w in scene.warnings if "not a file" in w]
+    assert "dir.png (a folder)" in w and "gone.jpg (broken symbolic link)" in w and "pipe.jpg (not a regular file)" in w

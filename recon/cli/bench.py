@@ -10,6 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from recon.config import DEFAULT_MAX_SIZE
+from recon.cli._options import SEED_MAX, json_file
 
 bench_app = typer.Typer(name="bench", help="Benchmarks against ground truth.", no_args_is_help=True,
                         add_completion=False, pretty_exceptions_enable=False)
@@ -39,7 +40,8 @@ def pairs_cmd(
         "--methods", help="Comma-separated methods (default: all: extra-affine,sift,orb,asift,aorb).")] = None,
     th: Annotated[float, typer.Option("--th", help="Correctness threshold in pixels (paper: sqrt(3)).")]
         = math.sqrt(3.0),
-    json_out: Annotated[Optional[Path], typer.Option("--json", help="Write the rows to this JSON file.")] = None,
+    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
+                                                     help="Write the rows to this JSON file.")] = None,
     only: Annotated[Optional[str], typer.Option(
         "--only", help="Run only pairs whose name contains this text (case-insensitive).")] = None,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="Hide the progress bar.")] = False,
@@ -84,8 +86,8 @@ def scenes_cmd(
                                               "top level, optional ground truth in <scene>/gt/).")],
     stock_presets: Annotated[str, typer.Option("--stock-presets", help="Comma-separated: default, high.")]
         = "default",
-    json_out: Annotated[Optional[Path], typer.Option("--json", help="Write every scene's comparison to this "
-                                                                   "JSON file.")] = None,
+    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
+                                                     help="Write every scene's comparison to this JSON file.")] = None,
     scenes: Annotated[Optional[str], typer.Option("--scenes", help="Comma-separated scene names (default: all).")]
         = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Outputs: OUT/<scene>/{stock-*,extra_affine} "
@@ -93,13 +95,14 @@ def scenes_cmd(
     max_size: Annotated[int, typer.Option("--max-size", help="Working resolution (longer side, px; 0 = full).")]
         = DEFAULT_MAX_SIZE,
     pairs: Annotated[str, typer.Option("--pairs", help="Pair selection for both pipelines.")] = "exhaustive",
-    seed: Annotated[int, typer.Option("--seed")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, max=SEED_MAX)] = 0,
 ) -> None:
     """`recon compare` on every scene under ROOT (stock COLMAP vs extra-affine), one summary table."""
     import sys
 
     from rich.console import Console
 
+    from recon.core.outdir import claim_output
     from recon.eval.compare import run_scenes, scenes_table
 
     presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
@@ -107,8 +110,13 @@ def scenes_cmd(
     root = root.expanduser()
     out_root = out if out is not None else Path("out") / "bench-scenes"
     err = Console(stderr=True, highlight=False)
-    results = run_scenes(root, out_root, names, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
-                         json_path=json_out, log=lambda m: err.print(f"recon: {m}", markup=False))
+    if not root.is_dir():  # before the output folder is created
+        from recon.errors import UserError
+
+        raise UserError(f"{root}: no such folder")
+    with claim_output(out_root, "bench", default_out=out is None, legacy=("*/compare.json",)) as out_root:
+        results = run_scenes(root, out_root, names, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
+                             json_path=json_out, log=lambda m: err.print(f"recon: {m}", markup=False))
     Console(width=None if sys.stdout.isatty() else 160).print(scenes_table(results, max_size))
     if json_out is not None:
         typer.echo(f"JSON: {json_out}")
@@ -126,8 +134,9 @@ def difficulty_cmd(
         = "default,high",
     image_size: Annotated[Optional[str], typer.Option("--image-size", help="Rendered size WxH (default: the "
                                                                            "preset's 800x600).")] = None,
-    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also copy the rows to this JSON file.")] = None,
-    seed: Annotated[int, typer.Option("--seed")] = 0,
+    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
+                                                     help="Also copy the rows to this JSON file.")] = None,
+    seed: Annotated[int, typer.Option("--seed", min=0, max=SEED_MAX)] = 0,
     recompute: Annotated[bool, typer.Option("--recompute", help="Run scenes again whose compare.json already exists.")]
         = False,
 ) -> None:
@@ -137,6 +146,7 @@ def difficulty_cmd(
 
     from rich.console import Console
 
+    from recon.core.outdir import claim_output
     from recon.errors import UserError
     from recon.eval.difficulty import difficulty_table, plot_difficulty, run_difficulty
 
@@ -149,8 +159,9 @@ def difficulty_cmd(
         raise UserError(f"--image-size {image_size!r}: expected WxH, each at least 64 px")
     presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
     err = Console(stderr=True, highlight=False)
-    data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]
-                          recompute=recompute, log=lambda m: err.print(f"recon: {m}", markup=False))
+    with claim_output(out, "bench", legacy=("difficulty.json",)) as out:
+        data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]
+                              recompute=recompute, log=lambda m: err.print(f"recon: {m}", markup=False))
     Console(width=None if sys.stdout.isatty() else 160).print(difficulty_table(data))
     js = Path(out) / "difficulty.json"
     if json_out is not None:

@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from recon.config import DEFAULT_MAX_SIZE
+from recon.cli._options import SEED_MAX
 
 
 def register(app: typer.Typer) -> None:
@@ -25,7 +26,8 @@ def register(app: typer.Typer) -> None:
                                                                  "(longer side, px; 0 = full).")] = DEFAULT_MAX_SIZE,
         pairs: Annotated[str, typer.Option("--pairs", help="exhaustive, sequential:K, or a file of name pairs.")]
             = "exhaustive",
-        seed: Annotated[int, typer.Option("--seed", help="Seed for the matcher and COLMAP's RANSAC.")] = 0,
+        seed: Annotated[int, typer.Option("--seed", min=0, max=SEED_MAX,
+                                          help="Seed for the matcher and COLMAP's RANSAC.")] = 0,
         progress: Annotated[bool, typer.Option("--progress/--no-progress",
                                                help="recon run's progress bars on stderr.")] = False,
         rerun: Annotated[str, typer.Option(
@@ -40,33 +42,39 @@ def register(app: typer.Typer) -> None:
         from recon.eval.compare import compare_scene, compare_table
 
         from recon.errors import UserError
+        from recon.core.outdir import claim_output
+        from recon.core.pipeline import RunConfig
+        from recon.core.scene import require_images
         from recon.eval.compare import load_gt
         from recon.viz.compare_rerun import COMPARE_RECORDING, log_comparison
         from recon.viz.rerun_log import find_viewer, parse_sink
 
         presets = [p.strip() for p in stock_preset.split(",") if p.strip()]
-        out_dir = (out or scene_dir / "compare").expanduser()
+        RunConfig(max_size=max_size, pairs=pairs, seed=seed)  # validates the shared options (UserError)
+        require_images(scene_dir.expanduser())  # before anything is created
+        out_dir = (out or scene_dir / "compare").expanduser().absolute()
         try:
-            sink = parse_sink(rerun, out_dir.resolve() / COMPARE_RECORDING)
+            sink = parse_sink(rerun, out_dir / COMPARE_RECORDING)
         except ValueError as e:
             raise UserError(str(e)) from None
         if sink.kind == "spawn" and find_viewer() is None:
             raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; use --rerun save")
         err = Console(stderr=True, highlight=False)
-        res = compare_scene(scene_dir, out, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
-                            progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
-                            on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
-        console = Console(width=None if sys.stdout.isatty() else 140)
-        console.print(compare_table(res))
-        console.print(f"JSON: {Path(res['out']) / 'compare.json'}")
-        if sink.enabled:
-            gt, _, _ = load_gt(Path(res["scene"]))
-            try:
-                saved = log_comparison(sink, res, gt)
-            except Exception as e:  # compare.json and both models are written: report, do not crash
-                print(f"recon: warning: the Rerun recording failed ({type(e).__name__}: {e}); "
-                      f"the comparison is complete in {Path(res['out']) / 'compare.json'}", file=sys.stderr)
-                saved = None
-            if saved is not None:
-                print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "
-                      f"open it with: recon view {saved}", file=sys.stderr)
+        with claim_output(out_dir, "compare", default_out=out is None, legacy=("compare.json",)) as out_dir:
+            res = compare_scene(scene_dir, out_dir, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
+                                progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
+                                on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
+            console = Console(width=None if sys.stdout.isatty() else 140)
+            console.print(compare_table(res))
+            console.print(f"JSON: {Path(res['out']) / 'compare.json'}")
+            if sink.enabled:
+                gt, _, _ = load_gt(Path(res["scene"]))
+                try:
+                    saved = log_comparison(sink, res, gt)
+                except Exception as e:  # compare.json and both models are written: report, do not crash
+                    print(f"recon: warning: the Rerun recording failed ({type(e).__name__}: {e}); "
+                          f"the comparison is complete in {Path(res['out']) / 'compare.json'}", file=sys.stderr)
+                    saved = None
+                if saved is not None:
+                    print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "
+                          f"open it with: recon view {saved}", file=sys.stderr)

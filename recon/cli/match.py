@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
@@ -14,6 +15,7 @@ from matching.metrics import DEFAULT_TH, gt_reference, precision
 from matching.registry import METHODS, get_matcher
 from matching.store import FeatureStore
 from matching.types import PairResult
+from recon.cli._options import SEED_MAX, image_file, json_file
 
 console = Console(stderr=False, highlight=False)
 
@@ -73,11 +75,14 @@ def match_command(
     img_b: Path = typer.Argument(..., help="Second image (image 1)."),
     method: str = typer.Option("extra-affine", "--method", "-m", help=f"One of: {', '.join(METHODS)}."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth homography file (image 0 -> image 1)."),
-    save_vis: Optional[Path] = typer.Option(None, "--save-vis", help="Write the matches drawn side by side (PNG/JPG)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result summary and matched points as JSON."),
+    save_vis: Optional[Path] = typer.Option(None, "--save-vis", callback=image_file,
+                                            help="Write the matches drawn side by side (PNG/JPG)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file,
+                                            help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
     variant: str = typer.Option("default", "--variant", help="extra-affine only: 'default' or 'paper' (plain reading)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of every RANSAC (results are deterministic per seed)."),
+    seed: int = typer.Option(0, "--seed", min=0, max=SEED_MAX,
+                             help="Seed of every RANSAC (results are deterministic per seed)."),
     rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
 ) -> None:
     """Match two images and report the reference choice, best view, matches and timings."""
@@ -89,6 +94,8 @@ def match_command(
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if variant not in ("default", "paper"):
         raise UserError(f"unknown variant {variant!r}; choose 'default' or 'paper'")
+    if not (th > 0 and np.isfinite(th)):
+        raise UserError(f"--th {th}: must be a positive number of pixels")
     from recon.viz.rerun_log import find_viewer, log_single_pair, parse_sink
 
     try:

@@ -8,19 +8,22 @@ from typing import Optional
 import typer
 from rich.console import Console
 
+from recon.cli._options import SEED_MAX
+
 
 def render_command(
     out_dir: Optional[Path] = typer.Argument(None, help="Folder to write images/ and gt/ into.", show_default=False),
     preset: str = typer.Option("corner", "--preset", help="Scene preset (see --list-presets)."),
     texture: Optional[list[Path]] = typer.Option(None, "--texture", help="Photo(s) to texture the planes with (repeatable)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the procedural textures and sensor noise."),
+    seed: int = typer.Option(0, "--seed", min=0, max=SEED_MAX, help="Seed of the procedural textures and sensor noise."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT_DIR/images and OUT_DIR/gt (nothing else)."),
     list_presets: bool = typer.Option(False, "--list-presets", help="List the presets and exit."),
 ) -> None:
     """Render piecewise-planar scenes from cameras with viewing angles up to 80+ degrees."""
+    from recon.core.outdir import output_lock
     from recon.errors import UserError
     from scenes.presets import PRESETS, get_preset
-    from scenes.render import render_scene
+    from scenes.render import check_render_target, render_scene
 
     console = Console(highlight=False)
     if list_presets:
@@ -33,7 +36,24 @@ def render_command(
         get_preset(preset)
     except ValueError as e:
         raise UserError(str(e)) from None
-    scene = render_scene(out_dir, preset, texture or None, seed, overwrite=overwrite)
+    for t in texture or []:
+        if not t.expanduser().is_file():
+            raise UserError(f"--texture {t}: no such file")
+    out_dir = out_dir.expanduser().absolute()
+    check_render_target(out_dir, overwrite)  # read-only: a user's images/ or gt/ is refused untouched
+    created = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ok = False
+    try:
+        with output_lock(out_dir):  # one render (or run) at a time in this folder
+            scene = render_scene(out_dir, preset, texture or None, seed, overwrite=overwrite)
+        ok = True
+    finally:
+        if not ok and created:  # nothing half-made left behind
+            import shutil
+
+            if all(p.name == ".recon.lock" for p in out_dir.iterdir()):
+                shutil.rmtree(out_dir, ignore_errors=True)
     all_angles = [a for d in scene.viewing_angles_deg for a in d.values()]
     console.print(f"rendered {len(scene.image_paths)} images of '{scene.preset}' into {scene.out_dir}; "
                   f"viewing angles {min(all_angles):.0f}-{max(all_angles):.0f} deg; ground truth in {scene.out_dir / 'gt'}")

@@ -77,7 +77,9 @@ def run(**kw: Any) -> None:
 
     from recon.core.pipeline import run_scene
     from recon.core.report import summary_table
-    from recon.core.scene import find_image_dir
+    from recon.core.outdir import claim_output, clean_content_cache
+    from recon.core.pairs import check_pairs_names, parse_pairs_spec
+    from recon.core.scene import require_images
     from recon.errors import UserError
     from recon.viz.rerun_log import RECORDING_NAME, RerunLogger, find_viewer, parse_sink
 
@@ -85,7 +87,7 @@ def run(**kw: Any) -> None:
     cfg = build_config(kw["ctx"], kw)
     # the same output folder run_scene uses; the logger opens its sink lazily, after
     # run_scene has checked and claimed the folder
-    out_dir = (cfg.output.out or scene_dir.expanduser() / "recon").resolve()
+    out_dir = (cfg.output.out or scene_dir.expanduser() / "recon").absolute()
     try:
         sink = parse_sink(kw["rerun"], out_dir / RECORDING_NAME)
     except ValueError as e:
@@ -93,19 +95,21 @@ def run(**kw: Any) -> None:
     if sink.kind == "spawn" and find_viewer() is None:
         raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; "
                         "use --rerun save and open the file elsewhere")
-    image_dir = find_image_dir(scene_dir.expanduser()).resolve()  # InputError for a missing folder
+    # the inputs first (no image decoded, nothing created): scene folder, image files, pairs file
+    image_dir, candidates = require_images(scene_dir.expanduser())
+    check_pairs_names(parse_pairs_spec(cfg.pairs.spec), candidates)
+    image_dir = image_dir.resolve()
     logger = RerunLogger(sink, lambda name: image_dir / name) if sink.enabled else None
     ok = False
-    try:
-        report = run_scene(scene_dir, cfg, observer=[logger] if logger else None)
-        ok = True
-    except KeyboardInterrupt:
-        # typer turns Ctrl-C into a *returned* exit code that `recon.cli.main` does not
-        # look at; SystemExit reaches it. Everything written so far is complete (atomic).
-        print("recon: interrupted; rerun the same command to resume", file=sys.stderr)
-        raise SystemExit(130) from None
-    finally:
-        saved = logger.close(ok) if logger else None
+    # one run per output folder (OUT/.recon.lock); a foreign folder is refused before anything is written
+    with claim_output(out_dir, "run", default_out=cfg.output.out is None, marker=False):
+        if cfg.output.clean_cache:
+            clean_content_cache(out_dir)
+        try:
+            report = run_scene(scene_dir, cfg, observer=[logger] if logger else None)
+            ok = True
+        finally:  # Ctrl-C too: `recon.cli.main` prints the one line and the exit code
+            saved = logger.close(ok) if logger else None
     stale = out_dir / RECORDING_NAME
     if cfg.output.overwrite and saved != stale and stale.is_file():  # --overwrite: no recording of an older run
         stale.unlink()

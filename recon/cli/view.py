@@ -22,9 +22,30 @@ def resolve_recording(target: Path) -> Path:
             raise UserError(f"{target}: no {RECORDING_NAME} or {COMPARE_RECORDING} here (run `recon run` or "
                             "`recon compare` without --rerun none)")
         p = found[0]
-    elif not p.is_file():
+    elif not p.exists():
         raise UserError(f"{target}: no such recording or output folder")
+    elif not p.is_file():
+        raise UserError(f"{target}: not a file or folder")
     return p
+
+
+RRD_MAGICS = (b"RRF0", b"RRF1", b"RRF2", b"RRIO")  # the first bytes of a Rerun recording file
+
+
+def check_recording(path: Path) -> Path:
+    """`path` when it holds a Rerun recording (by its first bytes, not its name); UserError
+    otherwise, so that a text file or a photo is never handed to the viewer."""
+    from recon.errors import UserError
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError as e:
+        raise UserError(f"{path}: cannot read ({e.strerror or e})") from None
+    if head[:4] not in RRD_MAGICS:
+        what = "an empty file" if not head else "not a Rerun recording (.rrd)"
+        raise UserError(f"{path}: {what}; give a `recon run` / `recon compare` output folder or its .rrd file")
+    return path
 
 
 def register(app: typer.Typer) -> None:
@@ -43,8 +64,12 @@ def register(app: typer.Typer) -> None:
         if exe is None:
             raise UserError("the Rerun viewer (`rerun`) is not installed; `pip install rerun-sdk` "
                             f"or open {rrd} at https://rerun.io/viewer")
+        check_recording(rrd)
+        from recon._signals import unblocked_for_children
+
         try:
-            code = subprocess.call([exe, str(rrd)])
+            with unblocked_for_children():  # the viewer must answer Ctrl-C / SIGTERM itself
+                code = subprocess.call([exe, str(rrd)])
         except OSError as e:
             raise UserError(f"cannot start the Rerun viewer {exe}: {e.strerror or e}") from None
         if code:

@@ -19,12 +19,18 @@ subtracts it).
 
 Atomicity: the pipeline builds the database in `database.db.tmp` and renames it over
 `database.db` only when complete (`build_database`), so an interrupted run never leaves a
-half-written database under the final name.
+half-written database under the final name. A database damaged afterwards (a disk error, a
+stray write) can still carry a matching fingerprint in `cache/state.json`:
+`database_is_sound` (SQLite's `PRAGMA quick_check` plus the tables COLMAP reads) must pass
+before one is reused, else it is rebuilt. A full disk while building is raised as
+`OSError(ENOSPC)` naming the database (SQLite reports it as "database or disk is full").
 """
 
 from __future__ import annotations
 
+import errno
 import os
+import sqlite3
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
@@ -34,18 +40,109 @@ from numpy.typing import NDArray
 
 CAMERA_MODES: tuple[str, ...] = ("auto", "single", "per-image")
 COLMAP_PIXEL_OFFSET = 0.5  # COLMAP keypoint = OpenCV keypoint + 0.5
+# the tables the pipeline and COLMAP's mapper read (pycolmap >= 3.12 schema)
+REQUIRED_TABLES: tuple[str, ...] = ("cameras", "images", "keypoints", "matches", "two_view_geometries",
+                                    "rigs", "frames")
 
 
-def _remove(path: Path) -> None:
-    for p in (path, Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
+def remove_database(path: str | Path) -> None:
+    """Delete a database file and its SQLite side files (-journal, -wal, -shm), if present."""
+    for p in (Path(path), Path(f"{path}-journal"), Path(f"{path}-wal"), Path(f"{path}-shm")):
         try:
             p.unlink()
         except FileNotFoundError:
             pass
 
 
+_remove = remove_database
+
+
+def database_problem(path: str | Path) -> str | None:
+    """Why the database at `path` cannot be trusted (one line), or None when it is sound.
+
+    Sound = SQLite opens it read-only, `PRAGMA quick_check` says "ok" (page-level damage, a
+    truncated file, garbage bytes) and it has the tables COLMAP needs, with at least one camera
+    and one image. Reads only; never modifies the file.
+    """
+    p = Path(path)
+    if not p.is_file():
+        return "missing"
+    try:
+        con = sqlite3.connect(f"{p.resolve().as_uri()}?mode=ro", uri=True, timeout=1.0)
+    except sqlite3.Error as e:
+        return f"cannot open: {e}"
+    try:
+        rows = con.execute("PRAGMA quick_check").fetchall()
+        if [r[0] for r in rows] != ["ok"]:
+            return f"SQLite integrity check failed: {rows[0][0] if rows else 'no answer'}"
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        missing = [t for t in REQUIRED_TABLES if t not in tables]
+        if missing:
+            return f"not a COLMAP database (no table {', '.join(missing)})"
+        for t in ("cameras", "images"):
+            if con.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0] == 0:
+                return f"no {t}"
+    except sqlite3.Error as e:
+        return f"unreadable: {e}"
+    finally:
+        con.close()
+    return None
+
+
+def database_is_sound(path: str | Path) -> bool:
+    """True when the database can be reused (see `database_problem`). The pipeline must check
+    this before trusting a database whose fingerprint matches; rebuild it when False."""
+    return database_problem(path) is None
+
+
+def _is_disk_full(e: BaseException, folder: Path | None = None) -> bool:
+    """True for a full-disk failure: ENOSPC, SQLite's "database or disk is full", or (COLMAP
+    hides the cause: "No registered database factory succeeded") less than 1 MB free in `folder`."""
+    if isinstance(e, OSError):
+        return e.errno in (errno.ENOSPC, errno.EDQUOT)
+    text = str(e).lower()
+    if "disk is full" in text or "no space left" in text:
+        return True
+    if folder is not None:
+        import shutil
+
+        try:
+            return shutil.disk_usage(folder).free < (1 << 20)
+        except OSError:
+            return False
+    return False
+
+
+def estimate_database_bytes(num_images: int, num_keypoints: int = 0, num_matches: int = 0, num_pairs: int = 0) -> int:
+    """A generous upper bound of the disk space building a database needs (bytes): keypoints
+    (24 B each, COLMAP's widest layout), raw and verified matches (8 B each), rows, SQLite's base
+    size, and x3 for the write-ahead log and its checkpoint, plus 1 MB."""
+    raw = 24 * num_keypoints + 16 * num_matches + 512 * (num_images + num_pairs)
+    return (256 << 10) + 3 * raw + (1 << 20)
+
+
+def require_free_space(db_path: str | Path, nbytes: int) -> None:
+    """OSError(ENOSPC) naming `db_path` when its folder has less than `nbytes` free.
+
+    Needed before COLMAP writes a database: a full disk inside one of pycolmap's transactions
+    throws from a destructor, and the process aborts (SIGABRT and a C stack dump) instead of
+    raising an exception Python could catch (pycolmap 4.2.1).
+    """
+    import shutil
+
+    folder = Path(db_path).parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if free < nbytes:
+        raise OSError(errno.ENOSPC, f"No space left on device ({free >> 10} KB free, about {nbytes >> 10} KB "
+                                    f"needed)", str(db_path))
+
+
 def _import(db_path: Path, image_dir: Path, names: Sequence[str], mode: pycolmap.CameraMode,
             camera_model: str) -> None:
+    require_free_space(db_path, estimate_database_bytes(len(names)))
     _remove(db_path)
     pycolmap.Database.open(str(db_path)).close()
     opts = pycolmap.ImageReaderOptions()
@@ -186,6 +283,8 @@ def build_database(db_path: str | Path, image_dir: str | Path, names: Sequence[s
     """
     db_path = Path(db_path)
     tmp = db_path.with_name(db_path.name + ".tmp")
+    require_free_space(db_path, estimate_database_bytes(  # the old file is replaced only at the end
+        len(names), sum(len(k) for k in keypoints.values()), sum(len(m) for m in matches), len(pairs)))
     try:
         if on_stage:
             on_stage("import")
@@ -196,8 +295,12 @@ def build_database(db_path: str | Path, image_dir: str | Path, names: Sequence[s
         if on_stage:
             on_stage("verify")
         verify(tmp, two_view, num_threads)
-    except BaseException:
+    except BaseException as e:
         _remove(tmp)
+        if isinstance(e, Exception) and not isinstance(e, OSError) and _is_disk_full(e, db_path.parent):
+            raise OSError(errno.ENOSPC, "No space left on device", str(db_path)) from e
+        if isinstance(e, OSError) and e.filename is None:
+            e.filename = str(db_path)
         raise
     for suffix in ("-journal", "-wal", "-shm"):  # a closed sqlite db leaves none; be safe
         side = Path(f"{tmp}{suffix}")

@@ -35,12 +35,31 @@ def to_jsonable(x: Any) -> Any:
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:
-    """Write JSON (numpy-safe, UTF-8) to `.<name>.tmp-<pid>` beside `path`, fsync, rename."""
+    """Write JSON (numpy-safe, UTF-8) to `.<name>.tmp-<pid>` beside `path`, fsync, rename.
+
+    On any failure (a full disk, Ctrl-C) the temporary file is removed and the OSError names
+    `path` (`filename`), so the CLI can say which file could not be written.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(to_jsonable(data), f, indent=1, ensure_ascii=False, default=str)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        text = json.dumps(to_jsonable(data), indent=1, ensure_ascii=False, default=str)
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        remove_quietly(tmp)
+        if isinstance(e, OSError) and e.filename is None:
+            e.filename = str(path)
+        raise
+
+
+def remove_quietly(path: str | Path) -> None:
+    """Delete a file if it exists; never raises (cleanup of temporary files on a failure path)."""
+    try:
+        os.unlink(path)
+    except OSError:
+        pass

@@ -3,7 +3,9 @@
 A pair's key hashes the matcher's identity (its config, thread counts left out), both images'
 pixel digests and working sizes, so a changed image or option never reuses a stale result.
 Results are stored in full-resolution pixels, keeping only matched keypoints (compact). A
-damaged or older-version file is recomputed, never trusted.
+damaged or older-version file is recomputed, never trusted. A failed write (a full disk,
+Ctrl-C) removes its temporary file and raises an OSError naming the cache file, so the run
+stops with "no space left on device writing PATH" instead of reporting pairs as failed.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.types import CoarseScore, PairResult, ViewParams
+from recon.core.jsonio import remove_quietly
 from recon.core.scene import SceneImage, to_full_res
 
 PAIR_CACHE_VERSION = "1"
@@ -54,7 +57,7 @@ def result_to_full_res(r: PairResult, im0: SceneImage, im1: SceneImage) -> PairR
 
 
 def save_pair_result(path: Path, r: PairResult) -> None:
-    """Atomic .npz of a (full-resolution, compact) PairResult."""
+    """Atomic .npz of a (full-resolution, compact) PairResult (see module doc for failures)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     views = np.array([[v.t, v.phi, v.s] for v in r.best_views], np.float64).reshape(-1, 3)
     coarse = np.array([[c.view.t, c.view.phi, c.view.s, c.matches, c.inliers, c.score]
@@ -63,12 +66,19 @@ def save_pair_result(path: Path, r: PairResult) -> None:
                 f0=r.f0, f1=r.f1, escalation=r.escalation, reason=r.reason, timings=r.timings,
                 image_sizes=r.image_sizes, version=PAIR_CACHE_VERSION)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
-    np.savez(tmp, kpts0=np.asarray(r.kpts0, np.float32), kpts1=np.asarray(r.kpts1, np.float32),
-             matches=np.asarray(r.matches, np.int32), distances=np.asarray(r.distances, np.float32),
-             views=views, coarse=coarse, H=(np.zeros((0, 3)) if r.H_1_from_0 is None else np.asarray(r.H_1_from_0)),
-             inlier_mask=(np.zeros(0, bool) if r.inlier_mask is None else np.asarray(r.inlier_mask, bool)),
-             has_mask=np.array(r.inlier_mask is not None), meta=np.array(json.dumps(meta)))
-    os.replace(tmp, path)
+    try:
+        np.savez(tmp, kpts0=np.asarray(r.kpts0, np.float32), kpts1=np.asarray(r.kpts1, np.float32),
+                 matches=np.asarray(r.matches, np.int32), distances=np.asarray(r.distances, np.float32),
+                 views=views, coarse=coarse,
+                 H=(np.zeros((0, 3)) if r.H_1_from_0 is None else np.asarray(r.H_1_from_0)),
+                 inlier_mask=(np.zeros(0, bool) if r.inlier_mask is None else np.asarray(r.inlier_mask, bool)),
+                 has_mask=np.array(r.inlier_mask is not None), meta=np.array(json.dumps(meta)))
+        os.replace(tmp, path)
+    except BaseException as e:
+        remove_quietly(tmp)
+        if isinstance(e, OSError) and e.filename is None:
+            e.filename = str(path)
+        raise
 
 
 def load_pair_result(path: Path) -> PairResult | None:

@@ -3,11 +3,26 @@
 * `exhaustive` (default): every unordered pair, (i, j) with i < j in name order.
 * `sequential:K`: each image with the next K images in name order (video or walk-around
   captures, where only neighbours overlap).
-* anything else is a path to a text file with one pair per line: two image names separated by
-  whitespace. Names containing spaces can be quoted ("my photo.jpg" other.jpg); `#` starts a
-  comment; blank lines are ignored. Pairs naming an image that is not in the scene (or was skipped
-  as corrupt or duplicate) are dropped with one warning, as are self-pairs and repeats ((a, b)
-  after (a, b) or (b, a)).
+* anything else is a path to a text file (UTF-8) with one pair per line (`read_pairs_file`):
+
+  - two image names separated by whitespace: `a.jpg b.jpg`; extra columns (retrieval scores)
+    are ignored;
+  - a name with spaces is quoted, with double or single quotes: `"my photo.jpg" 'b c.jpg'`. A
+    quote counts only at the start of a name, so apostrophes inside one need nothing
+    (`l'église.jpg`); there is no escaping inside quotes;
+  - or the line is tab-separated (it holds a tab): each field is a name taken verbatim
+    (spaces, quotes and `#` inside included), surrounding spaces stripped, and one pair of
+    quotes around the whole field removed;
+  - `#` starts a comment only at the start of a line or after whitespace (`# note`,
+    `a.jpg b.jpg  # note`, a field starting with `#`); inside a name (`photo#2.jpg`) it is part
+    of the name. A name that starts with `#` must be quoted;
+  - blank lines are ignored.
+
+  Syntax errors name the file and line (InputError). `check_pairs_names` checks the names against
+  the scene's image files before any image is decoded: a file naming no pair of them is refused
+  up front. Pairs naming an image that is not in the scene (or was skipped as corrupt or
+  duplicate) are dropped with one warning, as are self-pairs and repeats ((a, b) after (a, b)
+  or (b, a)).
 
 Pairs come out in a deterministic order (the generator's order, or the file's), and the
 pipeline writes results in that order whatever order the matching finished in.
@@ -15,7 +30,6 @@ pipeline writes results in that order whatever order the matching finished in.
 
 from __future__ import annotations
 
-import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,16 +82,56 @@ def sequential_pairs(names: list[str], k: int) -> list[Pair]:
     return [(names[i], names[j]) for i in range(len(names)) for j in range(i + 1, min(len(names), i + 1 + k))]
 
 
+def split_pairs_line(line: str) -> list[str]:
+    """The names on one line of a pairs file (see module doc); ValueError when malformed."""
+    if "\t" in line:
+        names = []
+        for field in line.split("\t"):
+            f = field.strip()
+            if f.startswith("#"):  # a comment: at the line's start or after a tab
+                break
+            if len(f) >= 2 and f[0] == f[-1] and f[0] in "\"'":  # quoted anyway
+                f = f[1:-1]
+            if f:
+                names.append(f)
+        return names
+    names, i, n = [], 0, len(line)
+    while i < n:
+        if line[i].isspace():
+            i += 1
+            continue
+        c = line[i]
+        if c == "#":  # at a name's start: a comment to the end of the line
+            break
+        if c in "\"'":
+            j = line.find(c, i + 1)
+            if j < 0:
+                raise ValueError(f"no closing {c} for the name starting at column {i + 1}")
+            if j + 1 < n and not line[j + 1].isspace():
+                raise ValueError(f"a quoted name must be followed by a space (column {j + 2})")
+            if j == i + 1:
+                raise ValueError(f"empty quoted name at column {i + 1}")
+            names.append(line[i + 1:j])
+            i = j + 1
+            continue
+        j = i
+        while j < n and not line[j].isspace():
+            j += 1
+        names.append(line[i:j])
+        i = j
+    return names
+
+
 def read_pairs_file(path: Path) -> list[Pair]:
     """The (name0, name1) rows of a pairs file; InputError naming the file and line when malformed."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = Path(path).read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: cannot read pairs file ({getattr(e, 'strerror', None) or e})") from None
     out: list[Pair] = []
     for lineno, line in enumerate(text.splitlines(), 1):
         try:
-            parts = shlex.split(line, comments=True)
+            parts = split_pairs_line(line)
         except ValueError as e:
             raise InputError(f"{path}:{lineno}: malformed pairs line ({e})") from None
         if not parts:
@@ -86,6 +140,25 @@ def read_pairs_file(path: Path) -> list[Pair]:
             raise InputError(f"{path}:{lineno}: expected two image names, got {line.strip()!r}")
         out.append((parts[0], parts[1]))  # extra columns (scores from retrieval) are ignored
     return out
+
+
+def check_pairs_names(spec: PairsSpec, candidates: list[str]) -> None:
+    """Before any image is decoded: a pairs file must parse and name at least one pair of the
+    scene's image files (`candidates`, from `scene.list_candidates`); InputError otherwise.
+    Other specs always pass. (Unknown names in a usable file are dropped later, with a warning.)"""
+    if spec.kind != "file":
+        return
+    assert spec.path is not None
+    rows = read_pairs_file(spec.path)
+    if not rows:
+        raise InputError(f"{spec.path}: the pairs file lists no pair")
+    known = set(candidates)
+    if not any(a in known and b in known and a != b for a, b in rows):
+        unknown = next((n for a, b in rows for n in (a, b) if n not in known), None)
+        detail = (f"{unknown!r} is not an image file of the scene" if unknown is not None
+                  else "every pair names one image twice")
+        raise InputError(f"{spec.path}: no line names two different images of the scene ({detail}; names are "
+                         f"file names relative to the image folder)")
 
 
 def make_pairs(spec: PairsSpec, names: list[str]) -> tuple[list[Pair], list[str]]:

@@ -7,6 +7,9 @@ What is skipped, and how (every case is one line in `Scene.warnings` and, for im
 row in `Scene.skipped`, which the run report lists under `skipped`):
 
 * files with other extensions: skipped with one summary warning (hidden dot-files silently);
+* entries with an image extension that are not regular files (a broken symbolic link, a folder
+  named `x.png`, a FIFO or device, which would block or never end a read): skipped with one
+  summary warning naming them;
 * files that do not decode (corrupt or truncated JPEG, empty file, unknown format) or are smaller
   than `matching.io.MIN_IMAGE_SIDE`: skipped;
 * duplicates, i.e. images whose decoded pixels are identical to an earlier image (in name
@@ -100,6 +103,42 @@ def find_image_dir(scene_dir: str | Path) -> Path:
     return sub if sub.is_dir() else root
 
 
+def require_images(scene_dir: str | Path, minimum: int = 2) -> tuple[Path, list[str]]:
+    """(image folder, image file names) of a scene, checked before anything is decoded or
+    written: InputError for a missing folder or one without image files, UserError when it
+    holds fewer than `minimum` image files."""
+    from recon.errors import UserError
+
+    image_dir = find_image_dir(scene_dir)
+    names, _ = list_candidates(image_dir)
+    if not names:
+        raise InputError(f"{image_dir}: no images found (expected .jpg, .jpeg, .png, .tif or .tiff files)")
+    if len(names) < minimum:
+        raise UserError(f"{image_dir}: need at least {minimum} images to reconstruct, found {len(names)} "
+                        f"({', '.join(names)})")
+    return image_dir, names
+
+
+def not_regular_images(image_dir: Path) -> list[tuple[str, str]]:
+    """[(name, what it is)] for entries with an image extension that are not regular files
+    (broken symbolic links, folders, FIFOs, devices); `list_candidates` leaves them out."""
+    out = []
+    try:
+        entries = sorted(image_dir.iterdir(), key=lambda p: p.name)
+    except OSError:
+        return out
+    for p in entries:
+        if p.name.startswith(".") or p.suffix.lower() not in IMAGE_EXTS or p.is_file():
+            continue
+        if p.is_symlink() and not p.exists():
+            out.append((p.name, "broken symbolic link"))
+        elif p.is_dir():
+            out.append((p.name, "a folder"))
+        else:
+            out.append((p.name, "not a regular file"))
+    return out
+
+
 def list_candidates(image_dir: Path) -> tuple[list[str], list[str]]:
     """(image file names, other file names) at the top level of `image_dir`, both sorted."""
     try:
@@ -151,6 +190,11 @@ def scan_scene(scene_dir: str | Path, max_size: int | None = 1600, workers: int 
     if others:
         shown = ", ".join(others[:5]) + (f" and {len(others) - 5} more" if len(others) > 5 else "")
         scene.warnings.append(f"skipped {len(others)} non-image file(s) in {image_dir}: {shown}")
+    odd = not_regular_images(image_dir)
+    if odd:
+        shown = ", ".join(f"{n} ({what})" for n, what in odd[:5]) + (f" and {len(odd) - 5} more" if len(odd) > 5 else "")
+        scene.warnings.append(f"skipped {len(odd)} entr{'y' if len(odd) == 1 else 'ies'} with an image name that "
+                              f"{'is' if len(odd) == 1 else 'are'} not a file in {image_dir}: {shown}")
     if not names:
         raise InputError(f"{image_dir}: no images found (expected .jpg, .jpeg, .png, .tif or .tiff files)")
 

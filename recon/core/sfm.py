@@ -30,6 +30,15 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   point is not observable from a few views.
 * `triangulation.ignore_two_view_tracks` stays True (COLMAP's default): merged keypoints give
   real multi-view tracks (see `recon.core.tracks`), so two-view-only points are not needed.
+  Except for a scene of exactly two images (`allow_two_view_model`): there every track has two
+  views, so with the default the initial pair triangulates nothing and the mapper can never
+  initialise ("needs a third view"). With two-view tracks kept, the mapper builds the model from
+  the verified relative pose of the pair (essential / fundamental matrix, COLMAP's own two-view
+  geometry) and triangulates its inliers; scale is arbitrary, as for any model without GPS.
+  `run_incremental` applies this by itself when the database holds exactly two images. Two
+  views barely constrain the focal length, so the model is as good as the focal prior: with an
+  EXIF focal length the relative rotation of a rendered pair 20 deg apart is within 0.5 deg of
+  the truth; without one (prior 1.2 * max(w, h), here 33 % too long) it is off by 6 deg.
 * thresholds in pixels (`init_max_error`, `filter_max_reproj_error`, triangulation reprojection
   errors) are multiplied by `px_scale`, the working-to-full-resolution factor (capped at 3): the
   matcher localises keypoints to about a pixel *of the working image*, which is `px_scale`
@@ -41,6 +50,7 @@ Why these options (COLMAP's defaults assume many images with small baselines):
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 from collections.abc import Callable
@@ -57,9 +67,17 @@ import pycolmap
 MAPPING_THREADS = 1
 
 
-def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0
+def allow_two_view_model(o: pycolmap.IncrementalPipelineOptions) -> pycolmap.IncrementalPipelineOptions:
+    """Let incremental mapping build a model of just two images (see module doc): keep the
+    two-view tracks, which are all a two-image scene has. Returns `o` (changed in place)."""
+    o.triangulation.ignore_two_view_tracks = False
+    return o
+
+
+def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0, num_images: int | None = None
                     ) -> pycolmap.IncrementalPipelineOptions:
-    """IncrementalPipelineOptions for a small wide-baseline scene (see module doc)."""
+    """IncrementalPipelineOptions for a small wide-baseline scene (see module doc); with
+    `num_images == 2` also `allow_two_view_model`."""
     f = float(min(max(px_scale, 1.0), 3.0))
     o = pycolmap.IncrementalPipelineOptions()
     o.min_num_matches = 15
@@ -85,6 +103,8 @@ def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0
     t.merge_max_reproj_error = 4.0 * f
     t.complete_max_reproj_error = 4.0 * f
     t.random_seed = int(seed)
+    if num_images == 2:
+        allow_two_view_model(o)
     return o
 
 
@@ -101,7 +121,8 @@ def options_summary(o: pycolmap.IncrementalPipelineOptions) -> dict:
                 tri_complete_max_reproj_error=t.complete_max_reproj_error,
                 ba_refine_focal_length=o.ba_refine_focal_length,
                 ba_refine_principal_point=o.ba_refine_principal_point,
-                ba_refine_extra_params=o.ba_refine_extra_params)
+                ba_refine_extra_params=o.ba_refine_extra_params,
+                ignore_two_view_tracks=t.ignore_two_view_tracks)
 
 
 @dataclass
@@ -147,7 +168,8 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
     (read it inside the hook, it changes afterwards) so callers can show the reconstruction
     growing. An exception from the hook is recorded in `SfmResult.hook_error` and the hook is
     not called again: mapping always finishes. Sets `options.image_path` (point colours).
-    Nothing is written to disk here (see `write_model_atomic`).
+    Nothing is written to disk here (see `write_model_atomic`). A database of exactly two
+    images gets `allow_two_view_model` (else no model could ever be found).
     """
     opts = options
     opts.image_path = str(image_dir)  # for extract_colors
@@ -174,6 +196,8 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
 
     db = pycolmap.Database.open(str(db_path))
     try:
+        if db.num_images() == 2:
+            allow_two_view_model(opts)
         pipeline = pycolmap.IncrementalPipeline(opts, db, manager)
         pipeline.add_callback(pycolmap.IncrementalPipelineCallback.INITIAL_IMAGE_PAIR_REG_CALLBACK, hook)
         pipeline.add_callback(pycolmap.IncrementalPipelineCallback.NEXT_IMAGE_REG_CALLBACK, hook)
@@ -192,19 +216,62 @@ def write_model_atomic(rec: pycolmap.Reconstruction, model_dir: str | Path) -> N
     """Write a binary model to `model_dir` (e.g. OUT/sparse/0) via a temporary sibling folder.
 
     The old model is moved aside before the new one is renamed into place and only then deleted,
-    so at every moment `model_dir` is either absent or a complete model.
+    so at every moment `model_dir` is either absent or a complete model. The written model is
+    read back before it replaces the old one (COLMAP's writers do not report a short write); a
+    failure removes the temporary folder and raises OSError naming `model_dir` (ENOSPC for a
+    full disk).
     """
     model_dir = Path(model_dir)
-    model_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = model_dir.with_name(f".{model_dir.name}.tmp-{os.getpid()}")
     old = model_dir.with_name(f".{model_dir.name}.old-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    rec.write(str(tmp))
-    if model_dir.exists():
-        os.replace(model_dir, old)
-    os.replace(tmp, model_dir)
-    shutil.rmtree(old, ignore_errors=True)
+    try:
+        model_dir.parent.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        try:
+            rec.write(str(tmp))
+        except Exception as e:
+            raise _as_os_error(e, tmp) from e
+        _check_written(rec, tmp)
+        if model_dir.exists():
+            os.replace(model_dir, old)
+        os.replace(tmp, model_dir)
+    except BaseException as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(e, OSError) and e.filename is None:
+            e.filename = str(model_dir)
+        raise
+    finally:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _as_os_error(e: BaseException, path: Path) -> BaseException:
+    """COLMAP reports write failures as RuntimeError; a full disk becomes OSError(ENOSPC, path)."""
+    if isinstance(e, OSError):
+        return e
+    if _disk_full_near(path) or "no space" in str(e).lower():
+        return OSError(errno.ENOSPC, "No space left on device", str(path))
+    return OSError(errno.EIO, f"could not write the model ({type(e).__name__}: {e})", str(path))
+
+
+def _disk_full_near(path: Path, margin_bytes: int = 1 << 20) -> bool:
+    try:
+        return shutil.disk_usage(path if path.is_dir() else path.parent).free < margin_bytes
+    except OSError:
+        return False
+
+
+def _check_written(rec: pycolmap.Reconstruction, model_dir: Path) -> None:
+    """Read the written model back: COLMAP's writers do not report a short write (a full disk)."""
+    try:
+        back = pycolmap.Reconstruction(str(model_dir))
+        same = back.num_reg_images() == rec.num_reg_images() and back.num_points3D() == rec.num_points3D()
+    except Exception:
+        same = False
+    if not same:
+        if _disk_full_near(model_dir):
+            raise OSError(errno.ENOSPC, "No space left on device", str(model_dir))
+        raise OSError(errno.EIO, "the model read back differs from the one written", str(model_dir))
 
 
 def model_stats(rec: pycolmap.Reconstruction | None) -> dict:
@@ -240,8 +307,12 @@ def write_points_ply(rec: pycolmap.Reconstruction, path: str | Path, clean: bool
     if clean and len(xyz) >= 20:
         pc, _ = pc.remove_statistical_outlier(nb_neighbors=min(20, len(xyz) - 1), std_ratio=2.0)
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.ply")  # open3d picks the format by extension
-    if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+    try:
+        if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+            if _disk_full_near(path.parent):
+                raise OSError(errno.ENOSPC, "No space left on device", str(path))
+            raise OSError(errno.EIO, "open3d could not write the point cloud", str(path))
+        os.replace(tmp, path)
+    finally:
         tmp.unlink(missing_ok=True)
-        raise OSError(f"{path}: open3d could not write the point cloud")
-    os.replace(tmp, path)
     return int(len(pc.points))

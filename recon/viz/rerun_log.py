@@ -32,6 +32,18 @@ Per-pair entities and the final model are static, so they show on every timeline
 The sink is opened lazily on the first logged item, so nothing is created in the output folder
 before the pipeline has checked and claimed it. A saved recording is written to a temporary
 `.NAME.tmp-<pid>` file and renamed when complete, so a killed run never leaves half a file.
+
+Closing never hangs: the final flush of a `connect` / `spawn` sink blocks for as long as no
+viewer accepts the data (rerun-sdk 0.41 waits for ever by default), and disconnecting a file
+sink whose writer died (a full disk) blocks for ever too, so `close` runs both in a daemon
+thread (`finish_stream`) and gives up after `CLOSE_TIMEOUT_S` (`SAVE_CLOSE_TIMEOUT_S` for a
+file's flush, `DISCONNECT_TIMEOUT_S` for the disconnect) with one warning, and the unfinished
+file is deleted; Ctrl-C still works while it waits. The viewer can be chosen with
+`RECON_RERUN_VIEWER=/path/to/rerun` (see `find_viewer`).
+
+An absent viewer costs one warning and nothing else: `connect` checks that something listens at
+the URL before streaming, and `spawn` starts the viewer itself (`spawn_viewer`) and stops at
+once when it exits (a machine without a display) instead of buffering the recording for it.
 """
 
 from __future__ import annotations
@@ -41,6 +53,7 @@ import logging
 import os
 import shutil
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,6 +77,9 @@ GROWTH_POINTS = 20000  # points per step of the growth replay (keeps a 30-image 
 GROWTH_NEW = (255, 140, 0)  # the camera just registered
 GROWTH_OLD = (150, 150, 150)  # cameras registered earlier
 GROWTH_PTS = (90, 160, 230)
+CLOSE_TIMEOUT_S = 3.0  # connect / spawn: how long the final flush may wait for a viewer
+SAVE_CLOSE_TIMEOUT_S = 120.0  # save: flushing a local file is only slow when it is huge
+DISCONNECT_TIMEOUT_S = 3.0  # after a flush, disconnecting is immediate unless the sink is dead
 log = logging.getLogger(__name__)
 
 
@@ -96,9 +112,127 @@ def parse_sink(spec: str, default_path: Path | None = None) -> Sink:
 
 
 def find_viewer() -> str | None:
-    """The Rerun viewer executable: on PATH or next to this Python (a venv's bin/), else None."""
+    """The Rerun viewer executable: `RECON_RERUN_VIEWER` when set (an empty value means none),
+    else `rerun` next to this Python (a venv's bin/) or on PATH; None when there is none."""
+    chosen = os.environ.get("RECON_RERUN_VIEWER")
+    if chosen is not None:
+        return shutil.which(chosen) if chosen.strip() else None
     here = str(Path(sys.executable).parent)
     return shutil.which("rerun", path=os.pathsep.join([here, os.environ.get("PATH", "")]))
+
+
+DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+SPAWN_TIMEOUT_S = 10.0  # how long a spawned viewer may take to listen
+
+
+def viewer_address(url: str | None) -> tuple[str, int]:
+    """(host, port) of a `connect` URL (rerun's default when None)."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url or DEFAULT_URL)
+    return parts.hostname or "127.0.0.1", parts.port or 9876
+
+
+def port_is_open(host: str, port: int, timeout_s: float = 1.0) -> bool:
+    import socket
+
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+def spawn_viewer(exe: str, port: int = 9876) -> str:
+    """Start the Rerun viewer listening on `port` (or reuse one already listening) and return its
+    URL. RuntimeError (one line, with the viewer's last error line) when it exits before
+    listening, e.g. on a machine without a display, or does not listen within
+    `SPAWN_TIMEOUT_S`: then nothing is buffered for a viewer that will never come (rerun's own
+    `spawn` waits, then buffers the whole recording for it)."""
+    import subprocess
+    import tempfile
+
+    from recon._signals import unblocked_for_children
+
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    if port_is_open("127.0.0.1", port, 0.2):
+        return url
+    with tempfile.TemporaryFile() as err:
+        with unblocked_for_children():  # the viewer process must be able to be terminated
+            proc = subprocess.Popen([exe, f"--port={port}", "--memory-limit=75%", "--expect-data-soon"],
+                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                                    start_new_session=True, env={**os.environ, "RERUN_APP_ONLY": "true"})
+        deadline = time.monotonic() + SPAWN_TIMEOUT_S
+        while time.monotonic() < deadline:
+            code = proc.poll()
+            if code is not None:
+                err.seek(0)
+                lines = [ln.strip() for ln in err.read().decode(errors="replace").splitlines() if ln.strip()]
+                why = f": {lines[-1][:200]}" if lines else ""
+                raise RuntimeError(f"the Rerun viewer {exe} exited at once (code {code}{why})")
+            if port_is_open("127.0.0.1", port, 0.2):
+                return url
+            time.sleep(0.1)
+    raise RuntimeError(f"the Rerun viewer {exe} did not listen on port {port} within {SPAWN_TIMEOUT_S:.0f} s")
+
+
+def finish_stream(rec: Any, flush_timeout_s: float, disconnect_timeout_s: float = DISCONNECT_TIMEOUT_S) -> str | None:
+    """Flush, then disconnect, a RecordingStream, each bounded in time; None when both finished,
+    else why not (one line).
+
+    Runs in a daemon thread so a sink that never drains cannot hang the process: rerun-sdk
+    0.41's flush waits for ever for an absent viewer, and its disconnect waits for ever after a
+    file sink's writer died (a full disk). The waits themselves can be interrupted with Ctrl-C.
+    """
+    errors: list[str] = []
+    flushed = threading.Event()
+
+    def work() -> None:
+        try:
+            rec.flush(timeout_sec=flush_timeout_s)
+        except Exception as e:  # rerun raises when its own timeout passes
+            errors.append(f"{type(e).__name__}: {e}")
+        flushed.set()
+        if errors:
+            return  # a sink that did not flush would block disconnect too
+        try:
+            rec.disconnect()
+        except Exception as e:
+            errors.append(f"{type(e).__name__}: {e}")
+
+    t = threading.Thread(target=work, name="recon-rerun-close", daemon=True)
+    t.start()
+    for event_done, limit, what in ((flushed.is_set, flush_timeout_s + 1.0, "flush"),
+                                    (lambda: not t.is_alive(), disconnect_timeout_s, "disconnect")):
+        deadline = time.monotonic() + limit
+        while not event_done() and time.monotonic() < deadline:
+            t.join(0.05)
+        if not event_done():
+            return f"{what} gave up after {limit:.0f} s"
+        if errors:
+            return errors[0]
+    return None
+
+
+_abandoned: list[Any] = []  # streams whose flush was given up (kept alive: dropping one blocks too)
+
+
+def abandoned_streams() -> int:
+    """How many streams were given up on; the program may then end with `os._exit` once its
+    outputs are written (rerun's exit-time teardown waits for the absent viewer again)."""
+    return len(_abandoned)
+
+
+def _forget_stream(rec: Any) -> None:
+    """Keep an undrained stream referenced (dropping it would block in its destructor) and skip
+    rerun's exit-time flush of every stream, which would wait for the absent viewer again."""
+    _abandoned.append(rec)
+    try:
+        import rerun as rr
+
+        rr.unregister_shutdown()
+    except Exception:
+        pass
 
 
 def _esc(part: str) -> str:
@@ -284,6 +418,10 @@ class RerunLogger(BaseRunObserver):
         self._growth_model: int | None = None  # model index of the last growth step logged
         self.seconds = 0.0  # wall-clock spent logging (overhead measurement)
         self.error: str | None = None  # the first logging failure (logging stops after it)
+        if sink.enabled and "rerun" not in sys.modules:
+            # rerun's own log lines (an absent viewer, a full disk; it reads RUST_LOG once, at
+            # import) would repeat our one warning several times; RUST_LOG=... still overrides
+            os.environ.setdefault("RUST_LOG", "off")
 
     # sink ---------------------------------------------------------------------------------------
     def open_sink(self):
@@ -301,25 +439,40 @@ class RerunLogger(BaseRunObserver):
             exe = find_viewer()
             if exe is None:
                 raise RuntimeError("the Rerun viewer (`rerun`) is not installed; use --rerun save instead")
-            rr.spawn(executable_path=exe, recording=rec, connect=True)
+            rec.connect_grpc(spawn_viewer(exe))
         else:  # connect
+            host, port = viewer_address(self.sink.target)
+            if not port_is_open(host, port):
+                raise RuntimeError(f"no Rerun viewer is listening at {self.sink.target or DEFAULT_URL} (start one "
+                                   f"with `rerun`, or use --rerun save)")
             rec.connect_grpc(self.sink.target)
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_DOWN, static=True)  # COLMAP: y down, z forward
         self.rec = rec
         return rec
 
     def close(self, ok: bool = True) -> Path | None:
-        """Flush and close the sink; a saved recording is moved into place (deleted when not ok)."""
+        """Flush and close the sink, bounded in time (see module doc); a saved recording is moved
+        into place (deleted when not ok). A sink that does not drain gives one warning."""
         if self.rec is None:
             return None
         rec, self.rec = self.rec, None
-        rec.flush()
-        rec.disconnect()
+        timeout = SAVE_CLOSE_TIMEOUT_S if self.sink.kind == "save" else CLOSE_TIMEOUT_S
+        problem = finish_stream(rec, timeout)
+        if problem is not None:
+            _forget_stream(rec)
+            if ok:  # a failed run has its own error line; one is enough
+                if self.sink.kind == "save":
+                    print(f"recon: warning: the Rerun recording {self.sink.target} could not be completed "
+                          f"({problem}); the run's outputs are complete", file=sys.stderr)
+                else:
+                    where = self.sink.target or DEFAULT_URL
+                    print(f"recon: warning: the Rerun viewer at {where} did not take the recording ({problem}; "
+                          f"was it closed?); the run's outputs are complete", file=sys.stderr)
         if self._tmp is None:
             return None
         tmp, self._tmp = self._tmp, None
         final = Path(self.sink.target).expanduser()  # type: ignore[arg-type]
-        if ok and tmp.exists():
+        if ok and problem is None and tmp.exists():
             os.replace(tmp, final)
             return final
         tmp.unlink(missing_ok=True)

@@ -57,6 +57,12 @@ def write_image_atomic(path: str | Path, img: NDArray[np.uint8]) -> None:
     if not ok:
         raise ValueError(f"{path}: cannot encode an image with extension {ext!r}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(buf.tobytes())
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_bytes(buf.tobytes())
+        os.replace(tmp, path)
+    except BaseException as e:  # a full disk or Ctrl-C: no temporary file left behind
+        tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError) and e.filename is None:
+            e.filename = str(path)
+        raise
