@@ -92,6 +92,8 @@ def captured(monkeypatch):
 
 
 def _cli(tmp_path, capsys, *args) -> tuple[int, list[str]]:
+    for name in ("a.png", "b.png"):  # the CLI checks for image files before the run starts
+        (tmp_path / name).touch()
     rc = main(["run", str(tmp_path), "--no-progress", "--rerun", "none", *map(str, args)])
     err = capsys.readouterr().err
     assert "Traceback" not in err

@@ -18,19 +18,18 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from matching.errors import InputError
 from matching.registry import PairMatcher
 from recon.config import RunConfig
 from recon.core.context import Run
 from recon.core.observer import RunObserver, as_observer
 from recon.core.orchestrator import run_stages
-from recon.core.outdir import prepare_out
+from recon.core.outdir import output_lock, prepare_out
+from recon.core.pairs import check_pairs_names, parse_pairs_spec
 from recon.core.report import RunReport
-from recon.core.scene import find_image_dir, list_candidates
+from recon.core.scene import require_images
 from recon.core.stages import scene_stages
 from recon.core.stages.match import make_matcher, match_pair_task, matcher_identity
 from recon.core.state import StageState
-from recon.errors import UserError
 
 __all__ = ["RunConfig", "make_matcher", "match_pair_task", "matcher_identity", "run_scene"]
 
@@ -47,16 +46,17 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *, matcher: P
     """
     cfg = cfg or RunConfig()
     root = Path(scene_dir).expanduser()
-    image_dir = find_image_dir(root)  # InputError for a missing scene folder
+    # the inputs first (no image decoded, nothing written): scene folder, image files, pairs file
+    image_dir, candidates = require_images(root)  # InputError / UserError
+    check_pairs_names(parse_pairs_spec(cfg.pairs.spec), candidates)
     root, image_dir = root.resolve(), image_dir.resolve()
-    candidates, _ = list_candidates(image_dir)
-    if not candidates:
-        raise InputError(f"{image_dir}: no images found (expected .jpg, .jpeg, .png, .tif or .tiff files)")
-    if len(candidates) < 2:
-        raise UserError(f"{image_dir}: need at least 2 images to reconstruct, found 1 ({candidates[0]})")
     out = (cfg.output.out or root / "recon").resolve()
-    prepare_out(out, root, candidates, cfg.output.overwrite, default_out=cfg.output.out is None)
+    notes = prepare_out(out, root, candidates, cfg.output.overwrite, default_out=cfg.output.out is None,
+                        clean_cache=cfg.output.clean_cache)
     report = RunReport(scene=str(root), out=str(out), config=cfg.to_dict(),
                        method=getattr(matcher, "name", "") if matcher is not None else cfg.match.method)
     run = Run(cfg, root, out, report, as_observer(observer), StageState(out / "cache" / "state.json"), matcher)
-    return run_stages(run, scene_stages())
+    for note in notes:
+        run.warn(note)
+    with output_lock(out):  # one run per output folder (re-entrant inside the CLI's own lock)
+        return run_stages(run, scene_stages())

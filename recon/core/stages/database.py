@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from recon.core.context import Run
-from recon.core.database import import_scene_images, write_keypoints_and_matches
+from recon.core.database import database_is_sound, import_scene_images, write_keypoints_and_matches
 from recon.core.state import fingerprint
 
 SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
@@ -55,8 +55,8 @@ class Database:
                            *[d.keypoints[n] for n in d.scene.names], d.pairs, *d.merged.matches)
 
     def reuse(self, run: Run, record: dict[str, Any]) -> bool:
-        if not self.path(run).is_file() or not record.get("image_ids"):
-            return False
+        if not self.path(run).is_file() or not record.get("image_ids") or not database_is_sound(self.path(run)):
+            return False  # a damaged database is rebuilt, even when its key matches
         self._done(run, {k: int(v) for k, v in record["image_ids"].items()}, record.get("camera_mode_used", ""),
                    list(record.get("missing", [])))
         return True

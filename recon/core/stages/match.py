@@ -113,6 +113,8 @@ class Match:
         report.pairs_cached = int(sum(cached))
         report.pairs_computed = len(pairs) - report.pairs_cached
         report.features_computed, report.features_reused = int(store.misses), int(store.hits)
+        if store.persist_error is not None:
+            run.warn(f"the feature cache could not be written ({store.persist_error}); features were kept in memory")
         return None
 
     @staticmethod

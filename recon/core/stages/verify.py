@@ -21,7 +21,7 @@ import pycolmap
 
 from recon.config import RunConfig
 from recon.core.context import Run
-from recon.core.database import read_verified, two_view_options, verify
+from recon.core.database import database_is_sound, read_verified, two_view_options, verify
 from recon.core.report import PairRow, options_dict
 from recon.core.stages.database import Database, remove_db, replace_db
 from recon.core.state import fingerprint
@@ -46,8 +46,8 @@ class Verify:
         return fingerprint("verify", run.keys.get("database"), options)
 
     def reuse(self, run: Run, record: dict[str, Any]) -> bool:
-        if not run.db_path.is_file():
-            return False
+        if not run.db_path.is_file() or not database_is_sound(run.db_path):
+            return False  # a damaged database is rebuilt, even when its key matches
         try:
             run.data.verified = read_verified(run.db_path)
         except Exception:  # an unreadable database is rebuilt, never trusted
