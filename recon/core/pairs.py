@@ -3,6 +3,8 @@
 * `exhaustive` (default): every unordered pair, (i, j) with i < j in name order.
 * `sequential:K`: each image with the next K images in name order (video or walk-around
   captures, where only neighbours overlap).
+* `retrieval:K`, `retrieval:K+sequential:S`, `auto`: appearance retrieval (see
+  `recon.core.retrieval`); `make_pairs` needs its `retrieve` argument for them.
 * anything else is a path to a text file with one pair per line: two image names separated by
   whitespace. Names containing spaces can be quoted ("my photo.jpg" other.jpg); `#` starts a
   comment; blank lines are ignored. Pairs naming an image that is not in the scene (or was skipped
@@ -16,6 +18,7 @@ pipeline writes results in that order whatever order the matching finished in.
 from __future__ import annotations
 
 import shlex
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,15 +29,18 @@ Pair = tuple[str, str]
 
 @dataclass(frozen=True)
 class PairsSpec:
-    kind: str  # "exhaustive" | "sequential" | "file"
-    k: int = 0  # sequential window
+    kind: str  # "exhaustive" | "sequential" | "file" | "retrieval" | "auto"
+    k: int = 0  # sequential window; for retrieval / auto: neighbours per image
     path: Path | None = None  # file of pairs
+    sequential: int = 0  # retrieval: also the next `sequential` images in name order
 
     def __str__(self) -> str:
         if self.kind == "sequential":
             return f"sequential:{self.k}"
         if self.kind == "file":
             return str(self.path)
+        if self.kind == "retrieval":
+            return f"retrieval:{self.k}" + (f"+sequential:{self.sequential}" if self.sequential else "")
         return self.kind
 
 
@@ -43,6 +49,13 @@ def parse_pairs_spec(spec: str) -> PairsSpec:
     s = (spec or "").strip()
     if s == "exhaustive":
         return PairsSpec("exhaustive")
+    # --- retrieval specs (issue 10): parsed by recon.core.retrieval ---
+    from recon.core.retrieval import is_retrieval_spec, parse_retrieval_spec
+
+    if is_retrieval_spec(s):
+        r = parse_retrieval_spec(s)
+        return PairsSpec("auto" if r.auto else "retrieval", k=r.k, sequential=r.sequential)
+    # ---
     if s.startswith("sequential"):
         _, sep, k = s.partition(":")
         try:
@@ -56,7 +69,7 @@ def parse_pairs_spec(spec: str) -> PairsSpec:
         raise ValueError("--pairs is empty: use exhaustive, sequential:K or a pairs file")
     p = Path(s).expanduser()
     if not p.is_file():
-        raise ValueError(f"--pairs {spec!r}: not 'exhaustive', 'sequential:K' or an existing pairs file")
+        raise ValueError(f"--pairs {spec!r}: not 'exhaustive', 'sequential:K', 'retrieval:K', 'auto' or an existing pairs file")
     return PairsSpec("file", path=p)
 
 
@@ -88,10 +101,20 @@ def read_pairs_file(path: Path) -> list[Pair]:
     return out
 
 
-def make_pairs(spec: PairsSpec, names: list[str]) -> tuple[list[Pair], list[str]]:
-    """(pairs, warnings) for the scene's usable image names (in name order)."""
+def make_pairs(spec: PairsSpec, names: list[str],
+               retrieve: Callable[[PairsSpec, list[str]], list[Pair]] | None = None,
+               ) -> tuple[list[Pair], list[str]]:
+    """(pairs, warnings) for the scene's usable image names (in name order).
+
+    `retrieve(spec, names)` computes retrieval / auto pairs (e.g. `recon.core.retrieval.
+    store_pairs` over the run's FeatureStore); ValueError when such a spec comes without it.
+    """
     if spec.kind == "exhaustive":
         return exhaustive_pairs(names), []
+    if spec.kind in ("retrieval", "auto"):  # issue 10: appearance retrieval
+        if retrieve is None:
+            raise ValueError(f"--pairs {spec}: retrieval needs image features (pass `retrieve`)")
+        return retrieve(spec, names), []
     if spec.kind == "sequential":
         return sequential_pairs(names, spec.k), []
     assert spec.path is not None
