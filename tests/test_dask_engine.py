@@ -67,6 +67,9 @@ def test_worker_task_in_threads_equals_pipeline_task(scene5, tmp_path):
     """The worker function itself (here in this process's threads) reproduces the pipeline's task."""
     scene, ref, _ = scene5
     specs = D.pair_task_specs(scene, PAIRS6[:2], "extra-affine", 3, 1600, tmp_path / "cache")
+    grays = {im.name: D.load_working_gray(im.path, 1600) for im in scene.images[:2]}
+    D.register_images(tmp_path / "cache", grays)  # view_02 is loaded by the task itself
+    assert D._store(tmp_path / "cache").store.image("view_00.png") is grays["view_00.png"]
     with ThreadPoolExecutor(2) as ex:
         got = list(ex.map(D.match_pair_on_worker, specs))
     for a, b in zip(ref[:2], got):

@@ -180,6 +180,18 @@ def _ensure_image(st: _WorkerStore, name: str, path: Path, max_size: int | None)
             st.store.drop_image(old)
 
 
+def register_images(cache_dir: Path | None, grays: "dict[str, NDArray[np.uint8]]") -> None:
+    """Hand already decoded working-resolution images to this process's store over `cache_dir`,
+    so `match_pair_on_worker` run in the driver's own threads (`--engine threads`) does not
+    decode them again. Optional: a task loads any image it lacks."""
+    st = _store(cache_dir)
+    with st.lock:
+        for name, gray in grays.items():
+            if name not in st.loaded:
+                st.store.add_image(name, gray)
+                st.loaded[name] = None
+
+
 def match_pair_on_worker(spec: PairTaskSpec) -> PairResult:
     """Match one pair in this (worker) process; the result is in working-resolution pixels."""
     st = _store(spec.cache_dir)

@@ -126,9 +126,9 @@ class RetrievalConfig:
 
     num_words: int = 64
     """VLAD centres (k-means clusters); the vector has num_words * 128 dimensions."""
-    train_descriptors: int = 60000
+    train_descriptors: int = 20000
     """At most this many descriptors (sampled evenly over images) train the k-means."""
-    kmeans_iters: int = 25
+    kmeans_iters: int = 15
     """Lloyd iterations after k-means++ seeding."""
     views: tuple[tuple[float, float], ...] = ((2.0, 0.0), (2.0, 90.0))
     """Simulated views (tilt t, longitude phi in degrees) whose SIFT is pooled with the
