@@ -52,6 +52,9 @@ def test_auto_is_exhaustive_for_small_scenes_without_features():
 
     pairs = R.pairs_for_spec(parse_pairs_spec("auto"), names, boom)
     assert len(pairs) == len(names) * (len(names) - 1) // 2
+    assert make_pairs(parse_pairs_spec("auto"), names)[0] == pairs  # no `retrieve` needed either
+    with pytest.raises(ValueError):
+        make_pairs(parse_pairs_spec("auto"), names + ["zzz.jpg"])
 
 
 # ranking ----------------------------------------------------------------------------------------

@@ -107,11 +107,16 @@ def make_pairs(spec: PairsSpec, names: list[str],
     """(pairs, warnings) for the scene's usable image names (in name order).
 
     `retrieve(spec, names)` computes retrieval / auto pairs (e.g. `recon.core.retrieval.
-    store_pairs` over the run's FeatureStore); ValueError when such a spec comes without it.
+    store_pairs` over the run's FeatureStore); ValueError when such a spec needs it and it is
+    missing (`auto` on a small scene is exhaustive and does not).
     """
     if spec.kind == "exhaustive":
         return exhaustive_pairs(names), []
     if spec.kind in ("retrieval", "auto"):  # issue 10: appearance retrieval
+        from recon.core.retrieval import AUTO_EXHAUSTIVE_MAX_IMAGES
+
+        if spec.kind == "auto" and len(names) <= AUTO_EXHAUSTIVE_MAX_IMAGES:
+            return exhaustive_pairs(names), []  # small scenes: no features needed
         if retrieve is None:
             raise ValueError(f"--pairs {spec}: retrieval needs image features (pass `retrieve`)")
         return retrieve(spec, names), []
