@@ -14,10 +14,10 @@ runs where available), united. Methods, each for K in --ks:
   original SIFT descriptors, with a vocabulary tree built by `pycolmap.VisualIndex` from them
   (1024 words; `num_images` = K + 1, its self-match dropped).
 
-Seconds: `features` is the per-image SIFT (originals; + views for vlad+views) at the pipeline's
-working size (1600 px), computed once per scene through a FeatureStore (disk-cached with
---cache, so reruns report the first run's figure from the JSON); `rank` is building the index
-and ranking for one K. Prints a table, writes benchmarks/results/retrieval.json.
+Seconds: `features` is the per-image SIFT (originals; + views for vlad+views) at the working
+size `--max-size` (the pipeline's, 1600 px by default), computed once per scene through a
+FeatureStore (disk-cached with --cache: a rerun reports only the cache reads); `rank` is
+building the index and ranking for one K. `--append` merges the rows into an existing JSON. Prints a table, writes benchmarks/results/retrieval.json.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def vocabtree_pairs(names: list[str], image_dir: Path, descs: list[np.ndarray], 
 
 
 def run_scene(name: str, scene_dir: Path, truth_roots: list[Path], ks: list[int], cache: Path | None,
-              vocabtree: bool, log=print) -> list[dict]:
+              vocabtree: bool, max_size: int = 1600, log=print) -> list[dict]:
     truth: set[tuple[str, str]] = set()
     sources = []
     for root in truth_roots:
@@ -106,7 +106,7 @@ def run_scene(name: str, scene_dir: Path, truth_roots: list[Path], ks: list[int]
             v = verified_pairs(db)
             sources.append({"database": str(db), "verified_pairs": len(v)})
             truth |= v
-    scene, grays = scan_scene(scene_dir, max_size=1600, workers=2)
+    scene, grays = scan_scene(scene_dir, max_size=max_size, workers=2)
     names = scene.names
     n = len(names)
     store = FeatureStore(cache_dir=None if cache is None else cache / name)
@@ -115,7 +115,7 @@ def run_scene(name: str, scene_dir: Path, truth_roots: list[Path], ks: list[int]
     del grays
     rows = []
     base = {"scene": name, "N": n, "exhaustive_pairs": n * (n - 1) // 2, "verified_pairs": len(truth),
-            "truth_sources": sources}
+            "truth_sources": sources, "max_size": max_size}
     cfg_views = R.RetrievalConfig()
     cfg_orig = R.RetrievalConfig(views=())
     t = time.perf_counter()
@@ -159,6 +159,8 @@ def main() -> None:
     ap.add_argument("--ks", default="3,5,8,10")
     ap.add_argument("--cache", type=Path, default=None, help="feature cache root (reused between runs)")
     ap.add_argument("--vocabtree", action="store_true", help="also COLMAP's vocabulary tree (slow; hung once)")
+    ap.add_argument("--max-size", type=int, default=1600, help="working size of the features (px)")
+    ap.add_argument("--append", action="store_true", help="keep other scenes' rows already in --out")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "retrieval.json")
     a = ap.parse_args()
     scenes = dict(s.split("=", 1) for s in a.scene) if a.scene else DEFAULT_SCENES
@@ -166,11 +168,14 @@ def main() -> None:
     print(HEADER, flush=True)
     rows: list[dict] = []
     for name, d in scenes.items():
-        rows += run_scene(name, Path(d), a.truth, ks, a.cache, a.vocabtree,
+        rows += run_scene(name, Path(d), a.truth, ks, a.cache, a.vocabtree, a.max_size,
                           log=lambda s: print(s, flush=True))
+    if a.append and a.out.is_file():
+        old = json.loads(a.out.read_text()).get("rows", [])
+        rows = [r for r in old if r["scene"] not in scenes] + rows
     a.out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"min_inliers": MIN_INLIERS, "truth_roots": [str(t) for t in a.truth], "ks": ks,
-            "retrieval_config": repr(R.RetrievalConfig()), "working_max_size": 1600,
+            "retrieval_config": repr(R.RetrievalConfig()),
             "auto": {"exhaustive_max_images": R.AUTO_EXHAUSTIVE_MAX_IMAGES, "k": R.AUTO_K}}
     a.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     print(f"JSON: {a.out}")

@@ -121,3 +121,17 @@ def test_dask_equals_threads_and_survives_a_killed_worker(scene5, tmp_path):
         local_store = FeatureStore()
         local_store.add_image(im.name, D.load_working_gray(im.path, 1600))
         assert np.array_equal(remote, image_descriptors(local_store, im.name, cfg))
+
+
+def test_worker_store_evicts_only_unpinned_images(scene5, tmp_path, monkeypatch):
+    monkeypatch.setattr(D, "IMAGES_PER_WORKER", 2)
+    ims = scene5[0].images[:4]
+    st = D._store(tmp_path / "lru")
+    D._ensure_image(st, ims[0].name, ims[0].path, 1600)  # stays pinned: a task is using it
+    for im in ims[1:]:
+        D._ensure_image(st, im.name, im.path, 1600)
+        D._unpin(st, im.name)
+    assert list(st.loaded) == [ims[0].name, ims[3].name]
+    assert ims[0].name in st.store and ims[1].name not in st.store
+    D._unpin(st, ims[0].name)
+    assert st.pins == {}

@@ -129,6 +129,7 @@ class _WorkerStore:
 
     store: FeatureStore
     loaded: OrderedDict[str, None] = field(default_factory=OrderedDict)
+    pins: dict[str, int] = field(default_factory=dict)  # images a running task uses: never evicted
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
@@ -166,18 +167,35 @@ def load_working_gray(path: Path, max_size: int | None) -> NDArray[np.uint8]:
 
 
 def _ensure_image(st: _WorkerStore, name: str, path: Path, max_size: int | None) -> None:
+    """Load `name` into the store unless it is there, and pin it (see `_unpin`); evict the least
+    recently used unpinned images beyond IMAGES_PER_WORKER."""
     with st.lock:
+        st.pins[name] = st.pins.get(name, 0) + 1
         if name in st.loaded:
             st.loaded.move_to_end(name)
             return
-    gray = load_working_gray(path, max_size)
+    try:
+        gray = load_working_gray(path, max_size)
+    except BaseException:
+        _unpin(st, name)
+        raise
     with st.lock:
         if name not in st.loaded:
             st.store.add_image(name, gray)
             st.loaded[name] = None
-        while len(st.loaded) > IMAGES_PER_WORKER:
-            old, _ = st.loaded.popitem(last=False)
+        excess = len(st.loaded) - IMAGES_PER_WORKER
+        for old in [n for n in st.loaded if not st.pins.get(n)][:max(0, excess)]:
+            del st.loaded[old]
             st.store.drop_image(old)
+
+
+def _unpin(st: _WorkerStore, name: str) -> None:
+    with st.lock:
+        n = st.pins.get(name, 0) - 1
+        if n > 0:
+            st.pins[name] = n
+        else:
+            st.pins.pop(name, None)
 
 
 def register_images(cache_dir: Path | None, grays: "dict[str, NDArray[np.uint8]]") -> None:
@@ -197,8 +215,14 @@ def match_pair_on_worker(spec: PairTaskSpec) -> PairResult:
     st = _store(spec.cache_dir)
     matcher = _matcher(spec.method, spec.overrides)
     _ensure_image(st, spec.name0, spec.path0, spec.max_size)
-    _ensure_image(st, spec.name1, spec.path1, spec.max_size)
-    return matcher.match(st.store, spec.name0, spec.name1)
+    try:
+        _ensure_image(st, spec.name1, spec.path1, spec.max_size)
+        try:
+            return matcher.match(st.store, spec.name0, spec.name1)
+        finally:
+            _unpin(st, spec.name1)
+    finally:
+        _unpin(st, spec.name0)
 
 
 def image_descriptors_on_worker(spec: ImageTaskSpec) -> NDArray[np.float32]:
@@ -207,7 +231,10 @@ def image_descriptors_on_worker(spec: ImageTaskSpec) -> NDArray[np.float32]:
 
     st = _store(spec.cache_dir)
     _ensure_image(st, spec.name, spec.path, spec.max_size)
-    return image_descriptors(st.store, spec.name, spec.retrieval or RetrievalConfig())
+    try:
+        return image_descriptors(st.store, spec.name, spec.retrieval or RetrievalConfig())
+    finally:
+        _unpin(st, spec.name)
 
 
 # driver side ------------------------------------------------------------------------------------
