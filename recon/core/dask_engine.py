@@ -28,6 +28,11 @@ Tasks are module-level functions of small picklable specs (no pipeline state cro
   (`recon.core.retrieval.image_descriptors`), leaving the original's SIFT in the shared cache for
   the matching tasks.
 
+Worker processes are started with `spawn` (Dask's default), which imports the driver's main
+module again: a script that calls `make_dask_executor(None, n)` must do so under
+`if __name__ == "__main__":` (the `recon` console script does; `recon/__main__.py`, run by
+`python -m recon`, needs that guard too before it can start a local cluster).
+
 Several machines: start a scheduler on one machine and a worker on each machine, with the
 scene folder and the output folder (its `cache/features`) on a shared filesystem mounted at the
 same path everywhere, and the same environment (`pip install recon` with `dask[distributed]`):
