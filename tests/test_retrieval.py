@@ -144,8 +144,8 @@ def test_retrieval_proposes_true_neighbours(facade9):
 @pytest.mark.slow
 def test_retrieval_with_simulated_views(facade9):
     names, store, r = facade9
-    cfg = R.RetrievalConfig(num_words=16)
-    d0 = R.image_descriptors(store, names[0], R.RetrievalConfig(views=()))
+    cfg = R.RetrievalConfig(num_words=16, views=((2.0, 0.0), (2.0, 90.0)))
+    d0 = R.image_descriptors(store, names[0], R.RetrievalConfig())
     descs = [R.image_descriptors(store, n, cfg) for n in names]
     assert len(descs[0]) > len(d0)  # the tilted views add descriptors
     pairs = R.store_pairs(parse_pairs_spec("retrieval:2"), store, names, cfg)

@@ -9,10 +9,12 @@ with the K' next images in name order for video-like captures (`retrieval:K+sequ
 The index is built offline from the scene's own features (no vocabulary download):
 
 1. per image, SIFT descriptors of the original (the matcher's own `sift0@orig` FeatureStore
-   entry, so the matching stage reuses them) pooled with the SIFT of a few simulated tilted
-   views (`RetrievalConfig.views`, the matcher's affine views, `matching.views`): appearance
-   retrieval is weakest on exactly the extreme-viewpoint pairs this project exists for, and an
-   image's tilted views look like the oblique photos of the same surface;
+   entry, so the matching stage reuses them and retrieval costs no extra detection),
+   optionally pooled with the SIFT of a few simulated tilted views (`RetrievalConfig.views`,
+   the matcher's affine views, `matching.views`): appearance retrieval is weakest on exactly
+   the extreme-viewpoint pairs this project exists for, and an image's tilted views look like
+   the oblique photos of the same surface. Measured on the four scenes of issue 10, two t = 2
+   views bought at most 2.4 points of recall for 2-4x the feature time: off by default;
 2. RootSIFT (L1 normalise, square root), a seeded k-means vocabulary of `num_words` centres
    (plain numpy Lloyd iterations with k-means++ seeding, on at most `train_descriptors`
    descriptors sampled evenly from all images);
@@ -130,10 +132,12 @@ class RetrievalConfig:
     """At most this many descriptors (sampled evenly over images) train the k-means."""
     kmeans_iters: int = 15
     """Lloyd iterations after k-means++ seeding."""
-    views: tuple[tuple[float, float], ...] = ((2.0, 0.0), (2.0, 90.0))
+    views: tuple[tuple[float, float], ...] = ()
     """Simulated views (tilt t, longitude phi in degrees) whose SIFT is pooled with the
-    original's; () indexes the originals only. Rendered like the matcher's fine views
-    (Lanczos, anti-aliased, zoom capped to the original's area) so they share its cache."""
+    original's, e.g. ((2, 0), (2, 90)); () (default) indexes the originals only. Rendered like
+    the matcher's fine views (Lanczos, anti-aliased, zoom capped to the original's area) so
+    they share its cache. Measured (benchmarks/results/retrieval.json): two t = 2 views add
+    0-2.4 points of recall for 2-4x the feature time, so they are off by default."""
     max_descriptors_per_image: int = 4000
     """Strongest descriptors kept per image and view (by detector response), bounding time."""
     seed: int = 0
