@@ -5,7 +5,9 @@
 Each `--run NAME=OUT:SCENE_DIR` names a finished `recon run SCENE_DIR --out OUT` (its
 OUT/database.db, and OUT/report.json for the working-to-full-resolution factor) and the scene
 folder (images and ground truth, `recon.eval.gt.find_gt`). Both mappers run on the same database
-with seed 0 and one thread (`recon.core.global_sfm.run_mapper`); the models are evaluated by
+with seed 0 and one thread (`recon.core.global_sfm.run_mapper`; `global-calibrated`
+first estimates focal lengths when the cameras have no prior, `run_global(calibrate=True)`;
+its seconds include the calibration); the models are evaluated by
 `recon.eval.evaluate.evaluate_model` as `recon compare` does (relative rotation / translation
 error medians over registered GT pairs, pose AUC over all GT pairs). Prints a table and writes
 benchmarks/results/mappers.json.
@@ -36,8 +38,9 @@ def bench_one(name: str, out: Path, scene_dir: Path, mappers: list[str], seed: i
     for mapper in mappers:
         t = time.perf_counter()
         with quiet_colmap():
-            res = run_mapper(mapper, out / "database.db", find_image_dir(scene_dir), seed=seed, num_threads=1,
-                             px_scale=px_scale_of(report))
+            res = run_mapper(mapper.removesuffix("-calibrated"), out / "database.db", find_image_dir(scene_dir),
+                             seed=seed, num_threads=1, px_scale=px_scale_of(report),
+                             calibrate=mapper.endswith("-calibrated"))
         secs = time.perf_counter() - t
         rec = res.reconstruction
         ev = evaluate_model(rec, gt, with_pairs=False) if gt is not None else {}
@@ -70,7 +73,7 @@ def _f(v, spec: str) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--run", action="append", required=True, help="NAME=OUT:SCENE_DIR")
-    ap.add_argument("--mappers", default="incremental,global")
+    ap.add_argument("--mappers", default="incremental,global,global-calibrated")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "mappers.json")
     a = ap.parse_args()
     print(f"{'scene':<16} {'mapper':<12} {'reg':>7} {'points':>7} {'seconds':>8} {'rot° med':>9} {'tr° med':>9} {'AUC@5':>6}")

@@ -35,12 +35,26 @@ def facade6_db(tmp_path_factory):
     return root / "scene", root / "out" / "database.db"
 
 
+def _geometries(db) -> list[tuple]:
+    """The database's two-view geometries: (pair, configuration, inliers, has a relative pose)."""
+    import pycolmap
+
+    d = pycolmap.Database.open(str(db))
+    try:
+        ids, geoms = d.read_two_view_geometries()
+    finally:
+        d.close()
+    return [(int(i), int(g.config), len(g.inlier_matches), g.cam2_from_cam1 is not None) for i, g in zip(ids, geoms)]
+
+
 @pytest.mark.slow
 def test_global_mapper_registers_every_image(facade6_db):
     from recon.eval.evaluate import evaluate_model
     from recon.eval.gt import find_gt
 
     scene, db = facade6_db
+    assert G.needs_calibration(db)  # rendered PNGs have no EXIF focal length
+    before = _geometries(db)
     updates = []
     with quiet_colmap():
         res = G.run_global(db, scene / "images", G.global_options(seed=0, num_threads=1),
@@ -52,10 +66,17 @@ def test_global_mapper_registers_every_image(facade6_db):
     assert ev["rel_rot_err_deg_median"] < 1.0
     assert updates  # the model-update hook fired
 
+    with quiet_colmap():  # focal-length calibration works on a copy, never on the pipeline's database
+        res_cal = G.run_global(db, scene / "images", G.global_options(seed=0, num_threads=1), calibrate=True)
+    assert res_cal.reconstruction is not None
+    assert _geometries(db) == before
+    assert not list(db.parent.glob(".calibrate-*"))
+
     def bad(_rec):
         raise RuntimeError("sink gone")
 
     with quiet_colmap():
-        res2 = G.run_global(db, scene / "images", G.global_options(seed=0, num_threads=1), on_update=bad)
+        res2 = G.run_global(db, scene / "images", G.global_options(seed=0, num_threads=1), on_update=bad,
+                            calibrate=False)
     assert res2.reconstruction is not None and res2.reconstruction.num_reg_images() == 6
     assert res2.hook_error == "RuntimeError: sink gone"

@@ -17,6 +17,19 @@ pycolmap 4.2.1 API used: `GlobalPipelineOptions` (top level: `min_num_matches`,
 `pycolmap.global_mapping(database_path, image_path, output_path, options)` is the same pipeline
 but writes every model to disk, which the pipeline does itself (`sfm.write_model_atomic`).
 
+Focal lengths: GLOMAP's rotation averaging and positioning trust the two-view geometries
+relative poses, which need intrinsics; photos without EXIF focal length get only a guess
+(1.2 * max(w, h), `recon.core.database`). With `calibrate=True` and any camera lacking a
+focal prior, `pycolmap.calibrate_view_graph` first estimates focal lengths from the
+fundamental matrices and re-estimates the relative poses. It rewrites the two-view geometries,
+so it runs on a temporary copy of the database: the pipeline's database (and a later
+incremental run on it) stays as written. It is off by default because it is scene-dependent
+(benchmarks/results/mappers.json): on castle_P30 (our run at 1000 px, no EXIF focal) GLOMAP
+registered 30/30 with a 13.9 deg median relative rotation error without it and 0.41 deg with
+it (incremental: 0.46 deg), but on a nearly planar rendered facade (a degenerate configuration
+for self-calibration) it estimated a 74 px focal length for a 288 px camera and the error went
+from 0.09 to 18 deg.
+
 Options (`global_options`), chosen to match `sfm.mapping_options` where both have the knob:
 `min_num_matches` 15, `multiple_models` with `min_model_size` 3, the seed everywhere, focal
 length and distortion refined but not the principal point, and no GPU (none here; GLOMAP's
@@ -26,6 +39,8 @@ incremental bundle adjustment, several threads may change the last digits.
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -71,14 +86,43 @@ def options_summary(o: pycolmap.GlobalPipelineOptions) -> dict:
                 max_angular_reproj_error_deg=m.max_angular_reproj_error_deg)
 
 
+def needs_calibration(db_path: str | Path) -> bool:
+    """True when some camera of the database has no prior focal length (no EXIF focal)."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        return any(not c.has_prior_focal_length for c in db.read_all_cameras())
+    finally:
+        db.close()
+
+
+def calibrate_copy(db_path: str | Path, work_dir: str | Path, seed: int = 0) -> Path:
+    """A copy of the database in `work_dir` with `pycolmap.calibrate_view_graph` applied."""
+    copy = Path(work_dir) / "database.calibrated.db"
+    shutil.copyfile(db_path, copy)
+    o = pycolmap.ViewGraphCalibrationOptions()
+    o.random_seed = int(seed)
+    pycolmap.calibrate_view_graph(str(copy), o)
+    return copy
+
+
 def run_global(db_path: str | Path, image_dir: str | Path, options: pycolmap.GlobalPipelineOptions | None = None,
-               on_update: UpdateHook | None = None) -> SfmResult:
+               on_update: UpdateHook | None = None, calibrate: bool = False) -> SfmResult:
     """Run global mapping on a database; return the largest model (or None) like `run_incremental`.
 
-    Sets `options.image_path` (point colours). Nothing is written to disk. An exception from
-    `on_update` is recorded in `SfmResult.hook_error` and the hook is not called again.
+    Sets `options.image_path` (point colours). `calibrate`: estimate focal lengths first when a
+    camera has no prior (on a temporary copy next to the database; see module doc). Nothing
+    else is written to disk. An exception from `on_update` is recorded in
+    `SfmResult.hook_error` and the hook is not called again.
     """
     opts = options or global_options()
+    if calibrate and needs_calibration(db_path):
+        with tempfile.TemporaryDirectory(prefix=".calibrate-", dir=Path(db_path).parent) as tmp:
+            return _run_global(calibrate_copy(db_path, tmp, opts.random_seed), image_dir, opts, on_update)
+    return _run_global(db_path, image_dir, opts, on_update)
+
+
+def _run_global(db_path: str | Path, image_dir: str | Path, opts: pycolmap.GlobalPipelineOptions,
+                on_update: UpdateHook | None) -> SfmResult:
     opts.image_path = str(image_dir)
     opts.mapper.image_path = str(image_dir)
     manager = pycolmap.ReconstructionManager()
@@ -110,7 +154,7 @@ MAPPERS: tuple[str, ...] = ("incremental", "global")
 
 
 def run_mapper(mapper: str, db_path: str | Path, image_dir: str | Path, seed: int = 0, num_threads: int = 1,
-               px_scale: float = 1.0) -> SfmResult:
+               px_scale: float = 1.0, calibrate: bool = False) -> SfmResult:
     """`incremental` (`sfm.run_incremental` with `sfm.mapping_options`) or `global` (`run_global`).
 
     ValueError naming the choices for anything else. For the pipeline's `--mapper` switch and
@@ -121,5 +165,5 @@ def run_mapper(mapper: str, db_path: str | Path, image_dir: str | Path, seed: in
     if mapper == "incremental":
         return sfm.run_incremental(db_path, image_dir, sfm.mapping_options(seed, num_threads, px_scale))
     if mapper == "global":
-        return run_global(db_path, image_dir, global_options(seed, num_threads))
+        return run_global(db_path, image_dir, global_options(seed, num_threads), calibrate=calibrate)
     raise ValueError(f"--mapper {mapper!r}: choose one of {', '.join(MAPPERS)}")
