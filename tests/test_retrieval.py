@@ -151,3 +151,12 @@ def test_retrieval_with_simulated_views(facade9):
     pairs = R.store_pairs(parse_pairs_spec("retrieval:2"), store, names, cfg)
     idx = {(names.index(a), names.index(b)) for a, b in pairs}
     assert _gt_nearest(r) <= idx and len(pairs) <= 2 * len(names)
+
+
+@pytest.mark.parametrize("spec", ["retrieval:0", "retrieval:x", "sequential:-1", "foo"])
+def test_cli_bad_retrieval_spec_is_one_line_exit_2(tmp_path, capsys, spec):
+    from recon.cli import main
+
+    rc = main(["run", str(tmp_path), "--method", "sift", "--no-progress", "--pairs", spec])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert rc == 2 and len(err) == 1 and spec in err[0]
