@@ -97,8 +97,9 @@ class LoadConfig:
 class PairsConfig:
     """The pairs stage: which image pairs are matched."""
 
-    spec: str = field(default="exhaustive", metadata={"flag": "--pairs"})
-    """exhaustive, sequential:K, or a file of name pairs."""
+    spec: str = field(default="auto", metadata={"flag": "--pairs"})
+    """auto (exhaustive up to 30 images, retrieval:10 above), exhaustive, sequential:K, retrieval:K,
+    retrieval:K+sequential:S, or a file of name pairs."""
 
     def __post_init__(self) -> None:
         from recon.core.pairs import parse_pairs_spec
@@ -117,7 +118,8 @@ class MatchConfig:
     """Pair matcher: extra-affine, sift, orb, asift, aorb."""
 
     engine: str = field(default="threads", metadata={"flag": "--engine"})
-    """Executor of the pair tasks: threads (a thread pool of --workers threads)."""
+    """Executor of the pair tasks: threads (a thread pool of --workers threads), dask (a local Dask
+    cluster of --workers processes) or dask:ADDRESS (an existing Dask scheduler)."""
 
     matcher: dict[str, Any] = field(default_factory=dict)
     """The matcher's own options by field name, e.g. {"fine_top_k": 3, "coarse.rank_by": "matches"}
@@ -126,13 +128,15 @@ class MatchConfig:
 
     def __post_init__(self) -> None:
         from matching.registry import METHODS
-        from recon.core.engine import ENGINES
+        from recon.core.engine import check_engine
 
         if self.method not in METHODS:
             raise UserError(f"--method {self.method!r}: choose one of {', '.join(METHODS)}")
-        if self.engine not in ENGINES:
-            raise UserError(f"--engine {self.engine!r}: choose one of {', '.join(ENGINES)}")
+        check_engine(self.engine)
         self.matcher = matcher_options(self.method, self.matcher)
+        if self.engine != "threads" and self.matcher:
+            raise UserError("--engine dask: matcher options (--set matcher.*) are not sent to Dask workers yet; "
+                            "use --engine threads with them")
 
 
 @dataclass
@@ -191,7 +195,15 @@ class SfmConfig:
     """Threads of incremental mapping (-1 = all cores). One keeps the model reproducible bit for
     bit: multi-threaded bundle adjustment sums in thread order (`recon.core.sfm.MAPPING_THREADS`)."""
 
+    mapper: str = field(default="incremental", metadata={"flag": "--mapper"})
+    """incremental (COLMAP's incremental mapper, wide-baseline options) or global (GLOMAP through
+    pycolmap.global_mapping; see docs/decisions.md for the measured comparison)."""
+
     def __post_init__(self) -> None:
+        from recon.core.global_sfm import MAPPERS
+
+        if self.mapper not in MAPPERS:
+            raise UserError(f"--mapper {self.mapper!r}: choose one of {', '.join(MAPPERS)}")
         if self.num_threads == 0 or self.num_threads < -1:
             raise UserError(f"sfm.num_threads {self.num_threads}: use -1 (all cores) or at least 1")
 

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from recon.config import RunConfig
 from recon.core.engine import make_executor
+from recon.log import console
 from recon.core.observer import CompositeObserver
 from recon.core.progress import Progress
 from recon.core.report import RunReport
@@ -99,6 +100,9 @@ class Run:
         """The pair tasks' executor (`cfg.match.engine`, `cfg.workers`), created on first use."""
         if self._executor is None:
             self._executor = make_executor(self.cfg.match.engine, self.cfg.num_workers)
+            link = getattr(self._executor, "dashboard_link", None)
+            if link:
+                console().print(f"recon: Dask dashboard: {link}", markup=False, highlight=False)
         return self._executor
 
     def close_executor(self, cancel: bool) -> None:

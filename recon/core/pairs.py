@@ -3,6 +3,8 @@
 * `exhaustive` (default): every unordered pair, (i, j) with i < j in name order.
 * `sequential:K`: each image with the next K images in name order (video or walk-around
   captures, where only neighbours overlap).
+* `retrieval:K`, `retrieval:K+sequential:S`, `auto`: appearance retrieval (see
+  `recon.core.retrieval`); `make_pairs` needs its `retrieve` argument for them.
 * anything else is a path to a text file (UTF-8) with one pair per line (`read_pairs_file`):
 
   - two image names separated by whitespace: `a.jpg b.jpg`; extra columns (retrieval scores)
@@ -30,6 +32,7 @@ pipeline writes results in that order whatever order the matching finished in.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,15 +43,18 @@ Pair = tuple[str, str]
 
 @dataclass(frozen=True)
 class PairsSpec:
-    kind: str  # "exhaustive" | "sequential" | "file"
-    k: int = 0  # sequential window
+    kind: str  # "exhaustive" | "sequential" | "file" | "retrieval" | "auto"
+    k: int = 0  # sequential window; for retrieval / auto: neighbours per image
     path: Path | None = None  # file of pairs
+    sequential: int = 0  # retrieval: also the next `sequential` images in name order
 
     def __str__(self) -> str:
         if self.kind == "sequential":
             return f"sequential:{self.k}"
         if self.kind == "file":
             return str(self.path)
+        if self.kind == "retrieval":
+            return f"retrieval:{self.k}" + (f"+sequential:{self.sequential}" if self.sequential else "")
         return self.kind
 
 
@@ -57,6 +63,13 @@ def parse_pairs_spec(spec: str) -> PairsSpec:
     s = (spec or "").strip()
     if s == "exhaustive":
         return PairsSpec("exhaustive")
+    # --- retrieval specs (issue 10): parsed by recon.core.retrieval ---
+    from recon.core.retrieval import is_retrieval_spec, parse_retrieval_spec
+
+    if is_retrieval_spec(s):
+        r = parse_retrieval_spec(s)
+        return PairsSpec("auto" if r.auto else "retrieval", k=r.k, sequential=r.sequential)
+    # ---
     if s.startswith("sequential"):
         _, sep, k = s.partition(":")
         try:
@@ -70,7 +83,7 @@ def parse_pairs_spec(spec: str) -> PairsSpec:
         raise ValueError("--pairs is empty: use exhaustive, sequential:K or a pairs file")
     p = Path(s).expanduser()
     if not p.is_file():
-        raise ValueError(f"--pairs {spec!r}: not 'exhaustive', 'sequential:K' or an existing pairs file")
+        raise ValueError(f"--pairs {spec!r}: not 'exhaustive', 'sequential:K', 'retrieval:K', 'auto' or an existing pairs file")
     return PairsSpec("file", path=p)
 
 
@@ -161,10 +174,25 @@ def check_pairs_names(spec: PairsSpec, candidates: list[str]) -> None:
                          f"file names relative to the image folder)")
 
 
-def make_pairs(spec: PairsSpec, names: list[str]) -> tuple[list[Pair], list[str]]:
-    """(pairs, warnings) for the scene's usable image names (in name order)."""
+def make_pairs(spec: PairsSpec, names: list[str],
+               retrieve: Callable[[PairsSpec, list[str]], list[Pair]] | None = None,
+               ) -> tuple[list[Pair], list[str]]:
+    """(pairs, warnings) for the scene's usable image names (in name order).
+
+    `retrieve(spec, names)` computes retrieval / auto pairs (e.g. `recon.core.retrieval.
+    store_pairs` over the run's FeatureStore); ValueError when such a spec needs it and it is
+    missing (`auto` on a small scene is exhaustive and does not).
+    """
     if spec.kind == "exhaustive":
         return exhaustive_pairs(names), []
+    if spec.kind in ("retrieval", "auto"):  # issue 10: appearance retrieval
+        from recon.core.retrieval import AUTO_EXHAUSTIVE_MAX_IMAGES
+
+        if spec.kind == "auto" and len(names) <= AUTO_EXHAUSTIVE_MAX_IMAGES:
+            return exhaustive_pairs(names), []  # small scenes: no features needed
+        if retrieve is None:
+            raise ValueError(f"--pairs {spec}: retrieval needs image features (pass `retrieve`)")
+        return retrieve(spec, names), []
     if spec.kind == "sequential":
         return sequential_pairs(names, spec.k), []
     assert spec.path is not None

@@ -118,9 +118,25 @@ class Match:
         return None
 
     @staticmethod
+    def _submit(run: Run, matcher: PairMatcher, todo: list[int]) -> dict[Future, int]:
+        """Submit the pairs `todo` to the run's executor: `match_pair_task` over the shared store in
+        threads, or `match_pair_on_worker` (a picklable spec: image paths, working size, matcher
+        name and options, seed, the shared feature cache) on Dask workers, which rebuild the same
+        matcher (its identity, and so the pair cache key, is the same as the driver's)."""
+        pairs, ex = run.data.pairs, run.executor
+        if not getattr(ex, "distributed", False):
+            return {ex.submit(match_pair_task, run.data.store, matcher, *pairs[i]): i for i in todo}
+        from recon.core.dask_engine import match_pair_on_worker, pair_task_specs
+
+        cfg = run.cfg
+        specs = pair_task_specs(run.data.scene, [pairs[i] for i in todo], cfg.match.method, cfg.seed,
+                                cfg.load.max_size or None, run.cache / "features")
+        return {ex.submit(match_pair_on_worker, spec): i for spec, i in zip(specs, todo)}
+
+    @staticmethod
     def _match_all(run: Run, matcher: PairMatcher, pair_dir: Path) -> tuple[list[PairResult], list[bool]]:
         """All pairs, from the cache or computed on the executor; results in pair order."""
-        pairs, store = run.data.pairs, run.data.store
+        pairs = run.data.pairs
         advance = run.bar(len(pairs))
         images = {im.name: im for im in run.data.scene.images}
         mid = matcher_identity(matcher)
@@ -138,8 +154,7 @@ class Match:
             run.observer.on_pair(i, a, b, r, True)
         if todo:
             pair_dir.mkdir(parents=True, exist_ok=True)
-            futures: dict[Future, int] = {run.executor.submit(match_pair_task, store, matcher, *pairs[i]): i
-                                          for i in todo}
+            futures = Match._submit(run, matcher, todo)
             pending = set(futures)
             try:
                 while pending:

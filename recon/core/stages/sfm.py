@@ -19,6 +19,8 @@ import pycolmap
 
 from recon.config import RunConfig
 from recon.core import sfm
+from recon.core.global_sfm import global_options, run_global
+from recon.core.global_sfm import options_summary as global_options_summary
 from recon.core.context import Run
 from recon.core.report import options_dict
 from recon.core.state import fingerprint
@@ -50,7 +52,10 @@ class Sfm:
         return run.out / "sparse" / "0"
 
     def key(self, run: Run) -> str | None:
-        run.report.sfm_options = options_dict(mapping_options(run.cfg, run.px_scale()))
+        if run.cfg.sfm.mapper == "global":
+            run.report.sfm_options = {"mapper": "global", **global_options_summary(global_options(run.cfg.seed))}
+        else:
+            run.report.sfm_options = options_dict(mapping_options(run.cfg, run.px_scale()))
         return fingerprint("sfm", run.keys.get("verify"), run.report.sfm_options)
 
     def reuse(self, run: Run, record: dict[str, Any]) -> bool:
@@ -72,7 +77,11 @@ class Sfm:
             advance(2 if s.registered_images == 2 else 1)
             run.observer.on_sfm_step(s, live)
 
-        res = sfm.run_incremental(run.db_path, run.image_dir, mapping_options(run.cfg, run.px_scale()), on_step=step)
+        if run.cfg.sfm.mapper == "global":  # GLOMAP: no registration steps to report
+            res = run_global(run.db_path, run.image_dir, global_options(run.cfg.seed, run.cfg.sfm.num_threads))
+        else:
+            res = sfm.run_incremental(run.db_path, run.image_dir, mapping_options(run.cfg, run.px_scale()),
+                                      on_step=step)
         advance(done=True)
         report, rec = run.report, res.reconstruction
         report.num_models, report.model_sizes, report.sfm_growth = res.num_models, res.model_sizes, res.growth

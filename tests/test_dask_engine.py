@@ -1,0 +1,137 @@
+"""The Dask engine: worker-side pair tasks equal the thread pool's, and a killed worker loses no pair."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from concurrent.futures import ThreadPoolExecutor, wait
+
+import numpy as np
+import pytest
+
+pytest.importorskip("distributed")
+
+from matching.store import FeatureStore  # noqa: E402
+from recon.core import dask_engine as D  # noqa: E402
+from recon.core.scene import scan_scene  # noqa: E402
+
+PAIRS6 = [("view_00.png", "view_01.png"), ("view_00.png", "view_02.png"), ("view_01.png", "view_02.png"),
+          ("view_01.png", "view_03.png"), ("view_02.png", "view_03.png"), ("view_03.png", "view_04.png")]
+
+
+def test_parse_dask_engine():
+    assert D.parse_dask_engine("dask") is None
+    assert D.parse_dask_engine("dask:tcp://10.0.0.1:8786") == "tcp://10.0.0.1:8786"
+    for bad in ("dask:", "threads", "dusk:x", ""):
+        with pytest.raises(ValueError) as e:
+            D.parse_dask_engine(bad)
+        assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("method", ["extra-affine", "sift"])
+def test_pipeline_overrides_build_the_pipeline_matcher(method):
+    from matching.registry import get_matcher
+    from recon.core.pipeline import make_matcher, matcher_identity
+
+    ov = D.pipeline_overrides(method, 7)
+    assert matcher_identity(get_matcher(method, **dict(ov))) == matcher_identity(make_matcher(method, 7, 1))
+
+
+@pytest.fixture(scope="module")
+def scene5(tmp_path_factory):
+    """A 5-view facade sweep at 320x240 and the thread pool's results for six pairs (the reference)."""
+    from recon.core.pipeline import make_matcher, match_pair_task
+    from scenes.render import render_scene
+
+    out = tmp_path_factory.mktemp("facade5")
+    render_scene(out, "facade-5x40", image_size=(320, 240))
+    scene, grays = scan_scene(out, max_size=1600)
+    store = FeatureStore(cache_dir=out / "threads-cache")
+    for n in scene.names:
+        store.add_image(n, grays[n])
+    matcher = make_matcher("extra-affine", seed=3, inner_workers=1)
+    with ThreadPoolExecutor(2) as ex:
+        ref = list(ex.map(lambda p: match_pair_task(store, matcher, *p), PAIRS6))
+    return scene, ref, out
+
+
+def _same(a, b) -> None:
+    for f in ("kpts0", "kpts1", "matches", "distances"):
+        x, y = np.asarray(getattr(a, f)), np.asarray(getattr(b, f))
+        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), f
+    assert (a.reference, a.best_views, a.reason, a.escalation) == (b.reference, b.best_views, b.reason, b.escalation)
+
+
+def test_worker_task_in_threads_equals_pipeline_task(scene5, tmp_path):
+    """The worker function itself (here in this process's threads) reproduces the pipeline's task."""
+    scene, ref, _ = scene5
+    specs = D.pair_task_specs(scene, PAIRS6[:2], "extra-affine", 3, 1600, tmp_path / "cache")
+    grays = {im.name: D.load_working_gray(im.path, 1600) for im in scene.images[:2]}
+    D.register_images(tmp_path / "cache", grays)  # view_02 is loaded by the task itself
+    assert D._store(tmp_path / "cache").store.image("view_00.png") is grays["view_00.png"]
+    with ThreadPoolExecutor(2) as ex:
+        got = list(ex.map(D.match_pair_on_worker, specs))
+    for a, b in zip(ref[:2], got):
+        _same(a, b)
+    assert any(r.num_matches > 50 for r in got)
+
+
+@pytest.mark.slow
+def test_dask_equals_threads_and_survives_a_killed_worker(scene5, tmp_path):
+    scene, ref, out = scene5
+    specs = D.pair_task_specs(scene, PAIRS6, "extra-affine", 3, 1600, tmp_path / "cache")
+    with D.make_dask_executor(None, 2) as engine:
+        assert engine.dashboard_link and engine.dashboard_link.startswith("http")
+        assert engine.num_workers == 2
+        # 1. same seed, byte-identical results to the thread pool
+        futs = [engine.executor.submit(D.match_pair_on_worker, s) for s in specs]
+        got = [f.result(timeout=600) for f in futs]
+        for a, b in zip(ref, got):
+            _same(a, b)
+
+        # 2. kill a busy worker process mid-run: every pair still comes back, unchanged
+        pids = engine.client.run(os.getpid)  # {worker address: pid}
+        specs2 = D.pair_task_specs(scene, PAIRS6, "extra-affine", 3, 1600, tmp_path / "cache2")
+        futs = [engine.executor.submit(D.match_pair_on_worker, s) for s in specs2]
+        victim = None
+        deadline = time.monotonic() + 120
+        while victim is None and time.monotonic() < deadline:
+            busy = [w for w, keys in engine.client.processing().items() if keys]
+            if busy:
+                victim = pids[sorted(busy)[0]]
+            else:
+                time.sleep(0.05)
+        assert victim is not None, "no worker ever became busy"
+        assert not all(f.done() for f in futs)
+        os.kill(victim, signal.SIGKILL)
+        done, not_done = wait(futs, timeout=600)
+        assert not not_done
+        for a, f in zip(ref, futs):
+            _same(a, f.result())
+        assert victim not in engine.client.run(os.getpid).values()  # the nanny started a new process
+
+        # 3. per-image retrieval descriptors as tasks equal the local computation
+        from recon.core.retrieval import RetrievalConfig, image_descriptors
+
+        cfg = RetrievalConfig(views=())
+        im = scene.images[0]
+        spec = D.ImageTaskSpec(im.name, im.path, 1600, tmp_path / "cache", cfg)
+        remote = engine.executor.submit(D.image_descriptors_on_worker, spec).result(timeout=300)
+        local_store = FeatureStore()
+        local_store.add_image(im.name, D.load_working_gray(im.path, 1600))
+        assert np.array_equal(remote, image_descriptors(local_store, im.name, cfg))
+
+
+def test_worker_store_evicts_only_unpinned_images(scene5, tmp_path, monkeypatch):
+    monkeypatch.setattr(D, "IMAGES_PER_WORKER", 2)
+    ims = scene5[0].images[:4]
+    st = D._store(tmp_path / "lru")
+    D._ensure_image(st, ims[0].name, ims[0].path, 1600)  # stays pinned: a task is using it
+    for im in ims[1:]:
+        D._ensure_image(st, im.name, im.path, 1600)
+        D._unpin(st, im.name)
+    assert list(st.loaded) == [ims[0].name, ims[3].name]
+    assert ims[0].name in st.store and ims[1].name not in st.store
+    D._unpin(st, ims[0].name)
+    assert st.pins == {}
