@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from recon.core.global_sfm import run_mapper
-from recon.core.progress import quiet_colmap
+from recon.log import quiet_colmap
 from recon.eval.evaluate import evaluate_model
 from recon.eval.gt import find_gt
 

@@ -72,7 +72,7 @@ def vocabtree_pairs(names: list[str], image_dir: Path, descs: list[np.ndarray], 
     import pycolmap
 
     from recon.core.database import import_scene_images
-    from recon.core.progress import quiet_colmap
+    from recon.log import quiet_colmap
 
     sift = pycolmap.FeatureExtractorType.SIFT
     with tempfile.TemporaryDirectory() as tmp, quiet_colmap():

@@ -121,7 +121,7 @@ def test_set_reaches_the_matcher(tmp_path, capsys, captured):
     ("nonsense=1", "load.max_size"),
     ("load.max_size=10", "--max-size"),
     ("novalue", "KEY=VALUE"),
-    ("match.engine=dask", "threads"),
+    ("match.engine=ray", "threads"),
 ])
 def test_bad_set_is_one_line_exit_2(tmp_path, capsys, captured, setting, text):
     rc, lines = _cli(tmp_path, capsys, "--set", setting)

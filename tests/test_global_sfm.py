@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from recon.core import global_sfm as G
-from recon.core.progress import quiet_colmap
+from recon.log import quiet_colmap
 
 
 def test_options_are_seeded_and_cpu_only():
@@ -31,7 +31,7 @@ def facade6_db(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("facade6")
     render_scene(root / "scene", "facade-6x30", image_size=(320, 240))
-    run_scene(root / "scene", RunConfig(out=root / "out", method="sift", progress=False), on_warning=lambda _m: None)
+    run_scene(root / "scene", RunConfig.from_options(out=root / "out", method="sift", progress=False))
     return root / "scene", root / "out" / "database.db"
 
 
