@@ -26,9 +26,15 @@ so it runs on a temporary copy of the database: the pipeline's database (and a l
 incremental run on it) stays as written. It is off by default because it is scene-dependent
 (benchmarks/results/mappers.json): on castle_P30 (our run at 1000 px, no EXIF focal) GLOMAP
 registered 30/30 with a 13.9 deg median relative rotation error without it and 0.41 deg with
-it (incremental: 0.46 deg), but on a nearly planar rendered facade (a degenerate configuration
-for self-calibration) it estimated a 74 px focal length for a 288 px camera and the error went
-from 0.09 to 18 deg.
+it (incremental: 0.46 deg), but on nearly planar rendered facades (a degenerate configuration
+for self-calibration) it lost one of facade-extreme's 4 views and, on a 6-view facade, estimated
+a 74 px focal length for a 288 px camera (error 0.09 -> 18 deg).
+
+Which mapper (measured, benchmarks/results/mappers.json, seed 0, one thread): global is as
+accurate or slightly better than incremental on fountain_P11 (0.226 / 0.237 deg median relative
+rotation error), facade-extreme (0.114 / 0.145) and facade-wide (0.084 / 0.107), but fails on
+castle_P30 (13.9 / 0.46 deg) unless calibrated; incremental is the only one accurate on all
+four, so it stays the default for wide-baseline scenes.
 
 Options (`global_options`), chosen to match `sfm.mapping_options` where both have the knob:
 `min_num_matches` 15, `multiple_models` with `min_model_size` 3, the seed everywhere, focal

@@ -56,7 +56,7 @@ Pair = tuple[str, str]
 
 # `auto`: exhaustive for at most this many images, retrieval:AUTO_K above. Measured
 # (benchmarks/bench_retrieval.py, results/retrieval.json): in fountain_P11, sacre_coeur, castle_P30
-# and the 30-view rendered facade, 50-100 % of ALL pairs verify (>= 15 inliers), so keeping 95 %
+# and the 30-view rendered facade, 91-100 % of ALL pairs verify (>= 15 inliers), so keeping 95 %
 # of them needs K close to N and retrieval saves nothing up to 30 images, while exhaustive matching
 # of 30 images (435 pairs) still takes minutes (575 s for the 800x600 facade). The pair-count
 # crossover alone, N(N-1)/2 <= (K+1)N, would be N <= 2K+3 = 23. AUTO_K is not yet validated
