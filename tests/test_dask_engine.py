@@ -32,7 +32,7 @@ def test_parse_dask_engine():
 @pytest.mark.parametrize("method", ["extra-affine", "sift"])
 def test_pipeline_overrides_build_the_pipeline_matcher(method):
     from matching.registry import get_matcher
-    from recon.core.pipeline import make_matcher, matcher_identity
+    from recon.core.stages.match import make_matcher, matcher_identity
 
     ov = D.pipeline_overrides(method, 7)
     assert matcher_identity(get_matcher(method, **dict(ov))) == matcher_identity(make_matcher(method, 7, 1))
