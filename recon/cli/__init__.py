@@ -21,12 +21,44 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # -h as well as --help on every command (click contexts inherit it from the group's)
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
+
+DISTRIBUTION = "recon-affine"
+"""The name on the package index (`pip install recon-affine`); `recon` there is another project.
+The import packages stay `recon`, `matching` and `scenes`."""
+
+
+def version() -> str:
+    """The installed distribution's version (pyproject.toml's), or "unknown" from a bare checkout."""
+    from importlib.metadata import PackageNotFoundError, metadata
+
+    # an install made before the rename is registered as `recon`: ours when its summary is ours
+    for dist in (DISTRIBUTION, "recon"):
+        try:
+            meta = metadata(dist)
+        except PackageNotFoundError:
+            continue
+        if dist == DISTRIBUTION or (meta.get("Summary") or "").startswith("Extra-affine"):
+            return str(meta["Version"])
+    return "unknown"
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        print(f"recon {version()}")
+        raise typer.Exit()
 
 
 @app.callback()
-def _global_options(verbose: Annotated[bool, typer.Option(
-        "-v", "--verbose", help="Debug logs and COLMAP's own log on stderr.")] = False) -> None:
+def _global_options(
+    verbose: Annotated[bool, typer.Option(
+        "-v", "--verbose", help="Debug logs and COLMAP's own log on stderr.", metavar="")] = False,
+    show_version: Annotated[bool, typer.Option(
+        "--version", help="Print the version and exit.", metavar="", is_eager=True,
+        callback=_print_version)] = False,
+) -> None:
     """Options before the command name (`recon -v run ...`): logging, set up once per command."""
     from recon.log import setup_logging
 
@@ -46,7 +78,9 @@ def _register_commands() -> None:
     import pkgutil
 
     for mod in sorted(m.name for m in pkgutil.iter_modules(__path__)):
-        importlib.import_module(f"{__name__}.{mod}").register(app)
+        register = getattr(importlib.import_module(f"{__name__}.{mod}"), "register", None)
+        if register is not None:  # helper modules (options) add no command
+            register(app)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,6 +8,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from recon.cli.options import (deprecated_stock_preset_option, progress_option, seed_option, stock_presets,
+                               stock_presets_option, workers_option)
 from recon.config import DEFAULT_MAX_SIZE
 
 
@@ -15,19 +17,19 @@ def register(app: typer.Typer) -> None:
     @app.command("compare")
     def compare(
         scene_dir: Annotated[Path, typer.Argument(help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR, "
-                                                       "optional ground truth in SCENE_DIR/gt/.")],
+                                                       "optional ground truth in SCENE_DIR/gt/.", metavar="SCENE_DIR")],
         out: Annotated[Optional[Path], typer.Option(
             "--out", help="Output folder (default: SCENE_DIR/compare): stock-<preset>/, extra_affine/, "
                           "compare.json.")] = None,
-        stock_preset: Annotated[str, typer.Option(
-            "--stock-preset", help="Stock COLMAP preset: default or high (comma-separated for several).")] = "default",
+        stock_presets_: Annotated[str, stock_presets_option()] = "default",
+        stock_preset: Annotated[Optional[str], deprecated_stock_preset_option()] = None,
         max_size: Annotated[int, typer.Option("--max-size", help="Working resolution of both pipelines "
                                                                  "(longer side, px; 0 = full).")] = DEFAULT_MAX_SIZE,
         pairs: Annotated[str, typer.Option("--pairs", help="exhaustive, sequential:K, or a file of name pairs.")]
             = "exhaustive",
-        seed: Annotated[int, typer.Option("--seed", help="Seed for the matcher and COLMAP's RANSAC.")] = 0,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress",
-                                               help="recon run's progress bars on stderr.")] = False,
+        seed: Annotated[int, seed_option()] = 0,
+        workers: Annotated[int, workers_option()] = 0,
+        progress: Annotated[bool, progress_option()] = True,
         rerun: Annotated[str, typer.Option(
             "--rerun", help="Rerun sink for both models in one frame: save[:PATH] (default: OUT/compare.rrd), "
                             "spawn, connect[:URL] or none.")] = "save",
@@ -44,7 +46,7 @@ def register(app: typer.Typer) -> None:
         from recon.viz.compare_rerun import COMPARE_RECORDING, log_comparison
         from recon.viz.rerun_log import find_viewer, parse_sink
 
-        presets = [p.strip() for p in stock_preset.split(",") if p.strip()]
+        presets = stock_presets(stock_presets_, stock_preset)
         out_dir = (out or scene_dir / "compare").expanduser()
         try:
             sink = parse_sink(rerun, out_dir.resolve() / COMPARE_RECORDING)
@@ -54,7 +56,7 @@ def register(app: typer.Typer) -> None:
             raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; use --rerun save")
         err = Console(stderr=True, highlight=False)
         res = compare_scene(scene_dir, out, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
-                            progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
+                            workers=workers, progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
                             on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
         console = Console(width=None if sys.stdout.isatty() else 140)
         console.print(compare_table(res))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
@@ -14,6 +14,7 @@ from matching.metrics import DEFAULT_TH, gt_reference, precision
 from matching.registry import METHODS, get_matcher
 from matching.store import FeatureStore
 from matching.types import PairResult
+from recon.cli.options import choices_metavar, seed_option, workers_option
 
 console = Console(stderr=False, highlight=False)
 
@@ -69,15 +70,18 @@ def _print(summary: dict, result: PairResult) -> None:
 
 
 def match_command(
-    img_a: Path = typer.Argument(..., help="First image (image 0)."),
-    img_b: Path = typer.Argument(..., help="Second image (image 1)."),
-    method: str = typer.Option("extra-affine", "--method", "-m", help=f"One of: {', '.join(METHODS)}."),
+    img_a: Path = typer.Argument(..., help="First image (image 0).", metavar="IMG_A"),
+    img_b: Path = typer.Argument(..., help="Second image (image 1).", metavar="IMG_B"),
+    method: str = typer.Option("extra-affine", "--method", "-m", help="Pair matcher.",
+                               metavar=choices_metavar(METHODS)),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth homography file (image 0 -> image 1)."),
     save_vis: Optional[Path] = typer.Option(None, "--save-vis", help="Write the matches drawn side by side (PNG/JPG)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
-    variant: str = typer.Option("default", "--variant", help="extra-affine only: 'default' or 'paper' (plain reading)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of every RANSAC (results are deterministic per seed)."),
+    variant: str = typer.Option("default", "--variant", metavar=choices_metavar(("default", "paper")),
+                                help="extra-affine only: the default, or the paper's plain reading."),
+    seed: Annotated[int, seed_option()] = 0,
+    workers: Annotated[int, workers_option("Threads of the extra-affine matcher's views (0 = all cores).")] = 0,
     rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
 ) -> None:
     """Match two images and report the reference choice, best view, matches and timings."""
@@ -104,8 +108,10 @@ def match_command(
     store.add_image(names[0], gray[0])
     store.add_image(names[1], gray[1])
     overrides: dict = {"seed": seed}
-    if method == "extra-affine" and variant == "paper":
-        overrides["variant"] = "paper"
+    if method == "extra-affine":
+        overrides["workers"] = workers
+        if variant == "paper":
+            overrides["variant"] = "paper"
     matcher = get_matcher(method, **overrides)
     result = matcher.match(store, names[0], names[1])
     summary = summarize(result, names, H_gt, th)

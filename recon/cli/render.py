@@ -3,19 +3,26 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
 
+from recon.cli.options import flag, seed_option
+from recon.cli.options import image_size as parse_image_size
+
 
 def render_command(
-    out_dir: Optional[Path] = typer.Argument(None, help="Folder to write images/ and gt/ into.", show_default=False),
+    out_dir: Optional[Path] = typer.Argument(None, help="Folder to write images/ and gt/ into.", show_default=False,
+                                             metavar="OUT_DIR"),
     preset: str = typer.Option("corner", "--preset", help="Scene preset (see --list-presets)."),
     texture: Optional[list[Path]] = typer.Option(None, "--texture", help="Photo(s) to texture the planes with (repeatable)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the procedural textures and sensor noise."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT_DIR/images and OUT_DIR/gt (nothing else)."),
-    list_presets: bool = typer.Option(False, "--list-presets", help="List the presets and exit."),
+    image_size: Optional[str] = typer.Option(None, "--image-size", help="Rendered size WxH, e.g. 800x600 (default: "
+                                                                        "the preset's)."),
+    seed: Annotated[int, seed_option("Seed of the procedural textures and sensor noise.")] = 0,
+    overwrite: Annotated[bool, flag("--overwrite", help="Replace OUT_DIR/images and OUT_DIR/gt (nothing else).")]
+        = False,
+    list_presets: Annotated[bool, flag("--list-presets", help="List the presets and exit.")] = False,
 ) -> None:
     """Render piecewise-planar scenes from cameras with viewing angles up to 80+ degrees."""
     from recon.errors import UserError
@@ -33,7 +40,8 @@ def render_command(
         get_preset(preset)
     except ValueError as e:
         raise UserError(str(e)) from None
-    scene = render_scene(out_dir, preset, texture or None, seed, overwrite=overwrite)
+    size = parse_image_size(image_size)
+    scene = render_scene(out_dir, preset, texture or None, seed, overwrite=overwrite, image_size=size)
     all_angles = [a for d in scene.viewing_angles_deg for a in d.values()]
     console.print(f"rendered {len(scene.image_paths)} images of '{scene.preset}' into {scene.out_dir}; "
                   f"viewing angles {min(all_angles):.0f}-{max(all_angles):.0f} deg; ground truth in {scene.out_dir / 'gt'}")

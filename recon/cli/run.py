@@ -16,6 +16,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
+from recon.cli.options import choices_metavar
 from recon.config import PRESETS, run_options
 
 CLI_TYPES = {bool, int, float, str, Path}
@@ -30,20 +31,28 @@ def _cli_type(t: Any) -> Any:
     return t if t in CLI_TYPES else str
 
 
+def metavar(t: Any, choices: tuple[str, ...]) -> str | None:
+    """--help's type column: the choices (`<a|b|c>`), nothing for a flag, else typer's own."""
+    if choices:
+        return choices_metavar(choices)
+    return "" if t is bool else None
+
+
 def _signature() -> inspect.Signature:
     """run()'s parameters: the scene folder, the generated config options, then the CLI's own."""
     P = inspect.Parameter
     params = [
         P("ctx", P.KEYWORD_ONLY, annotation=typer.Context),
         P("scene_dir", P.KEYWORD_ONLY, annotation=Annotated[Path, typer.Argument(
-            help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR.")]),
+            help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR.", metavar="SCENE_DIR")]),
     ]
     for o in run_options():
         params.append(P(o.name, P.KEYWORD_ONLY, default=o.default,
-                        annotation=Annotated[_cli_type(o.type), typer.Option(o.flag, help=o.help)]))
+                        annotation=Annotated[_cli_type(o.type), typer.Option(
+                            o.flag, help=o.help, metavar=metavar(o.type, o.choices))]))
     params += [
         P("preset", P.KEYWORD_ONLY, default="default", annotation=Annotated[str, typer.Option(
-            "--preset", help=f"Named configuration: {', '.join(PRESETS)} (see recon.config.PRESETS).")]),
+            "--preset", help="Named configuration (see recon.config.PRESETS).", metavar=choices_metavar(PRESETS))]),
         P("config", P.KEYWORD_ONLY, default=None, annotation=Annotated[Optional[Path], typer.Option(  # noqa: UP045
             "--config", help="TOML or JSON file of options (nested as report.json's config; the matcher's "
                              "options in a matcher table).")]),

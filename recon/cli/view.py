@@ -30,7 +30,7 @@ def resolve_recording(target: Path) -> Path:
 def register(app: typer.Typer) -> None:
     @app.command("view")
     def view(
-        target: Annotated[Path, typer.Argument(help="A `recon run` or `recon compare` output folder, or a .rrd file.")],
+        target: Annotated[Path, typer.Argument(help="A `recon run` or `recon compare` output folder, or a .rrd file.", metavar="TARGET")],
     ) -> None:
         """Open a Rerun recording (OUT_DIR/recording.rrd or compare.rrd) in the Rerun viewer."""
         import subprocess

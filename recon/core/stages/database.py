@@ -6,7 +6,7 @@ rename): cameras from EXIF (`database.camera_mode`), images, keypoints (+0.5 for
 centres) and *all* the matcher's matches, before verification (the verify stage works on a
 copy). See `recon.core.database`.
 
-Key: the camera mode, every image's name and pixel digest, the merged keypoints, the pairs and
+Key: the camera mode and model, every image's name and pixel digest, the merged keypoints, the pairs and
 their merged matches. Reused when unchanged and `matches.db` exists (the image ids, the camera
 mode used and the images COLMAP could not read come back from the state record).
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from recon.core.context import Run
-from recon.core.database import import_scene_images, write_keypoints_and_matches
+from recon.core.database import CAMERA_MODELS, import_scene_images, write_keypoints_and_matches
 from recon.core.state import fingerprint
 
 SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
@@ -50,7 +50,8 @@ class Database:
 
     def key(self, run: Run) -> str | None:
         d = run.data
-        return fingerprint("database", run.cfg.database.camera_mode,
+        model = run.cfg.database.camera_model  # in the key only when not the default: older caches stay valid
+        return fingerprint("database", run.cfg.database.camera_mode, *([model] if model != CAMERA_MODELS[0] else []),
                            [(im.name, im.digest) for im in d.scene.images],
                            *[d.keypoints[n] for n in d.scene.names], d.pairs, *d.merged.matches)
 
@@ -66,7 +67,8 @@ class Database:
         tmp = path.with_name(path.name + ".tmp")
         advance = run.bar(len(d.scene.names) + len(d.pairs))
         try:
-            ids, used, missing = import_scene_images(tmp, run.image_dir, d.scene.names, run.cfg.database.camera_mode)
+            ids, used, missing = import_scene_images(tmp, run.image_dir, d.scene.names, run.cfg.database.camera_mode,
+                                                     run.cfg.database.camera_model)
             write_keypoints_and_matches(tmp, ids, d.keypoints, d.pairs, d.merged.matches, on_item=lambda: advance())
         except BaseException:
             remove_db(tmp)
