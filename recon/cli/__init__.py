@@ -14,6 +14,7 @@ import typer
 
 from matching.errors import InputError
 from recon.errors import UserError
+from recon.version import DISTRIBUTION, version  # noqa: F401  (re-exported)
 
 app = typer.Typer(
     name="recon",
@@ -24,26 +25,6 @@ app = typer.Typer(
     # -h as well as --help on every command (click contexts inherit it from the group's)
     context_settings={"help_option_names": ["-h", "--help"]},
 )
-
-DISTRIBUTION = "recon-affine"
-"""The name on the package index (`pip install recon-affine`); `recon` there is another project.
-The import packages stay `recon`, `matching` and `scenes`."""
-
-
-def version() -> str:
-    """The installed distribution's version (pyproject.toml's), or "unknown" from a bare checkout."""
-    from importlib.metadata import PackageNotFoundError, metadata
-
-    # an install made before the rename is registered as `recon`: ours when its summary is ours
-    for dist in (DISTRIBUTION, "recon"):
-        try:
-            meta = metadata(dist)
-        except PackageNotFoundError:
-            continue
-        if dist == DISTRIBUTION or (meta.get("Summary") or "").startswith("Extra-affine"):
-            return str(meta["Version"])
-    return "unknown"
-
 
 def _print_version(value: bool) -> None:
     if value:

@@ -436,7 +436,7 @@ class RerunLogger(BaseRunObserver):
             rec.set_time("pair", sequence=i)
             rec.log("plots/pair/verified_inliers", rr.Scalars(float(p.verified_inliers)))
             rec.log(f"{pair_entity(p.image0, p.image1)}/verified", rr.AnyValues(verified_inliers=int(p.verified_inliers),
-                                                                              two_view_config=p.config))
+                                                                              two_view_config=p.two_view_config))
         rec.reset_time()
         if report.pairs:
             rec.log("plots/bars/verified_inliers", rr.BarChart(np.array([p.verified_inliers for p in report.pairs],
