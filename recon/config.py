@@ -72,6 +72,10 @@ class OutputConfig:
     progress: bool = field(default=True, metadata={"flag": "--progress/--no-progress"})
     """Progress bars on stderr."""
 
+    keep_cache: bool = field(default=True, metadata={"flag": "--keep-cache/--clean-cache"})
+    """Keep OUT/cache (features, pair results, stage records: what lets a rerun resume; often many
+    times the size of the outputs), or delete it after a successful run."""
+
     def __post_init__(self) -> None:
         if self.out is not None:
             self.out = Path(self.out).expanduser()

@@ -78,6 +78,27 @@ def build_config(ctx: typer.Context, kw: dict[str, Any]) -> Any:
     return build_run_config(kw["preset"], kw["config"], given, kw["set_"])
 
 
+STALE_RECORDING_NAME = "recording.previous.rrd"
+
+
+def retire_stale_recording(recording: Path, saved: Path | None, report: Any, overwrite: bool) -> Path | None:
+    """A recording never outlives the model it shows: when this run wrote a new model (or none)
+    and did not write `recording` itself (`--rerun none`, or save:PATH elsewhere), an older
+    OUT/recording.rrd is deleted (--overwrite) or renamed to recording.previous.rrd, so `recon
+    view OUT` cannot show a different run. Returns the renamed file, if any."""
+    import sys
+
+    if saved == recording or not recording.is_file() or (report.model_reused and not overwrite):
+        return None
+    if overwrite:
+        recording.unlink()
+        return None
+    old = recording.with_name(STALE_RECORDING_NAME)
+    recording.replace(old)
+    print(f"recon: {recording.name} showed an older model; renamed to {old.name}", file=sys.stderr)
+    return old
+
+
 def run(**kw: Any) -> None:
     """Match the photos of a scene, write a COLMAP database and reconstruct a sparse model."""
     import sys
@@ -115,9 +136,7 @@ def run(**kw: Any) -> None:
         raise SystemExit(130) from None
     finally:
         saved = logger.close(ok) if logger else None
-    stale = out_dir / RECORDING_NAME
-    if cfg.output.overwrite and saved != stale and stale.is_file():  # --overwrite: no recording of an older run
-        stale.unlink()
+    retire_stale_recording(out_dir / RECORDING_NAME, saved, report, cfg.output.overwrite)
     Console().print(summary_table(report))
     if saved is not None:
         print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "

@@ -59,4 +59,15 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *, matcher: P
     report = RunReport(scene=str(root), out=str(out), config=cfg.to_dict(),
                        method=getattr(matcher, "name", "") if matcher is not None else cfg.match.method)
     run = Run(cfg, root, out, report, as_observer(observer), StageState(out / "cache" / "state.json"), matcher)
-    return run_stages(run, scene_stages())
+    report = run_stages(run, scene_stages())
+    if report.ok and not cfg.output.keep_cache:
+        clean_cache(out)
+    return report
+
+
+def clean_cache(out: Path) -> None:
+    """`--clean-cache`: delete OUT/cache after a successful run (the next run starts from scratch;
+    the outputs, database.db, sparse/, points.ply and report.json, stay)."""
+    import shutil
+
+    shutil.rmtree(out / "cache", ignore_errors=True)
