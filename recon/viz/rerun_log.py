@@ -67,7 +67,8 @@ THUMB_PX = 320  # longest side of the camera images in the 3D view
 # recording's size is mostly these pictures (measured in docs/decisions.md, "Rerun recordings").
 PAIR_PX = 512
 JPEG_QUALITY = 80
-MAX_STRIPS = 300  # match lines per class (inliers, outliers) in the Rerun pair view
+MAX_STRIPS = 80  # match lines per class (inliers, outliers) in the Rerun pair view: legible at viewer size
+STRIP_ALPHA = 170  # lines a little transparent, so the images show through a dense set
 GROWTH_POINTS = 20000  # points per step of the growth replay (keeps a 30-image recording small)
 GROWTH_NEW = (255, 140, 0)  # the camera just registered
 GROWTH_OLD = (150, 150, 150)  # cameras registered earlier
@@ -655,7 +656,8 @@ def log_pair_view(rec: Any, ent: str, thumb0: tuple[NDArray[np.uint8], float],
 
     strips = match_strips(r, s0, s1, float(im0.shape[1]))
     for (name, (lines, idx)), bgr, order in zip(strips.items(), (INLIER_BGR, OUTLIER_BGR), (30.0, 25.0)):
-        rec.log(f"{ent}/{name}", rr.LineStrips2D(lines, colors=bgr[::-1], radii=rr.Radius.ui_points(1.0),
+        rec.log(f"{ent}/{name}", rr.LineStrips2D(lines, colors=(*bgr[::-1], STRIP_ALPHA),
+                                                 radii=rr.Radius.ui_points(0.75),
                                                  labels=[f"match {i}" for i in idx], show_labels=False,
                                                  draw_order=order), static=True)
 
