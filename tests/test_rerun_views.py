@@ -24,8 +24,16 @@ pytest.importorskip("rerun")
 
 from matching.types import PairResult  # noqa: E402
 from recon.cli import main  # noqa: E402
-from recon.viz.rerun_log import (MAX_STRIPS, Sink, heatmap_figure, heatmap_image, log_single_pair,  # noqa: E402
-                                 match_strips, pair_entity, replay_steps)
+from recon.viz.rerun_log import (  # noqa: E402
+    MAX_STRIPS,
+    Sink,
+    heatmap_figure,
+    heatmap_image,
+    log_single_pair,
+    match_strips,
+    pair_entity,
+    replay_steps,
+)
 
 
 def _batches(rrd: Path) -> dict[str, list]:

@@ -113,7 +113,8 @@ def scenes_cmd(
     out_root = out if out is not None else Path("out") / "bench-scenes"
     err = Console(stderr=True, highlight=False)
     results = run_scenes(root, out_root, names, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
-                         workers=workers, progress=progress, json_path=json_out, log=lambda m: err.print(f"recon: {m}", markup=False))
+                         workers=workers, progress=progress, json_path=json_out,
+                         log=lambda m: err.print(f"recon: {m}", markup=False))
     Console(width=None if sys.stdout.isatty() else 160).print(scenes_table(results, max_size))
     if json_out is not None:
         typer.echo(f"JSON: {json_out}")
@@ -154,7 +155,8 @@ def difficulty_cmd(
     presets = stock_presets(stock_presets_)
     err = Console(stderr=True, highlight=False)
     data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,
-                          recompute=recompute, workers=workers, progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False))
+                          recompute=recompute, workers=workers, progress=progress,
+                          log=lambda m: err.print(f"recon: {m}", markup=False))
     Console(width=None if sys.stdout.isatty() else 160).print(difficulty_table(data))
     js = Path(out) / "difficulty.json"
     if json_out is not None:

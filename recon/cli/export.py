@@ -30,7 +30,8 @@ NEXT_STEP = {
 def register(app: typer.Typer) -> None:
     @app.command("export")
     def export(
-        out_dir: Annotated[Path, typer.Argument(help="A `recon run` output folder (holds sparse/0).", metavar="OUT_DIR")],
+        out_dir: Annotated[Path, typer.Argument(help="A `recon run` output folder (holds sparse/0).",
+                                                metavar="OUT_DIR")],
         format: Annotated[ExportFormat, typer.Option(
             "--format", "-f", help="colmap-text: the model as COLMAP text (sparse/0/*.txt); 3dgs: undistorted "
                                    "images/ + sparse/0 with PINHOLE cameras (Gaussian splatting); nerfstudio: "

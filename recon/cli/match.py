@@ -75,7 +75,8 @@ def match_command(
     method: str = typer.Option("extra-affine", "--method", "-m", help="Pair matcher.",
                                metavar=choices_metavar(METHODS)),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth homography file (image 0 -> image 1)."),
-    save_vis: Optional[Path] = typer.Option(None, "--save-vis", help="Write the matches drawn side by side, with a legend and counts (PNG/JPG)."),
+    save_vis: Optional[Path] = typer.Option(None, "--save-vis", help="Write the matches drawn side by side, with "
+                                                                     "a legend and counts (PNG/JPG)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
     variant: str = typer.Option("default", "--variant", metavar=choices_metavar(("default", "paper")),

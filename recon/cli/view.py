@@ -60,7 +60,8 @@ def web_url(port: int = WEB_PORT, grpc_port: int = GRPC_PORT, host: str = "local
 def register(app: typer.Typer) -> None:
     @app.command("view")
     def view(
-        target: Annotated[Path, typer.Argument(help="A `recon run` or `recon compare` output folder, or a .rrd file.", metavar="TARGET")],
+        target: Annotated[Path, typer.Argument(help="A `recon run` or `recon compare` output folder, or a .rrd file.",
+                                               metavar="TARGET")],
         web: Annotated[bool, typer.Option(
             "--web", metavar="", help="Serve Rerun's web viewer instead of opening a window (for a machine "
                                       "without a display; over ssh, forward --port and --grpc-port).")] = False,

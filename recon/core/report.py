@@ -21,7 +21,8 @@
 * `pairs`: one row per pair in pair order: `image0`, `image1`, `reference` (name of the image
   the matcher simulated, or null), `best_view` ({t, phi, s} or null), `raw_matches` (matcher
   output), `merged_matches` (after keypoint merging), `verified_inliers` (COLMAP's two-view
-  geometry), `two_view_config` (COLMAP's two-view model; `config` in version 1), `cached` (loaded from the pair cache), `reason`;
+  geometry), `two_view_config` (COLMAP's two-view model; `config` in version 1), `cached`
+  (loaded from the pair cache), `reason`;
 * `skipped`: [{name, reason}] for unreadable, corrupt, duplicate or un-importable images;
 * `warnings`, `config` (the RunConfig, nested as `recon.config.RunConfig.to_dict`), `method` (the
   matcher, or `colmap-sift`), `preset` (stock COLMAP's preset; empty for `recon run`),

@@ -2,7 +2,8 @@
 
 A scene folder holds its photos in `SCENE_DIR/images/` (searched recursively, like COLMAP's
 ImageReader: a photo in `images/cam1/a.jpg` is named `cam1/a.jpg`, with `/` on every platform) or
-directly in `SCENE_DIR` (top level only: SCENE_DIR also holds gt/ and the outputs). Photos are JPEG, PNG or TIFF with any case of extension (`.JPG`, `.Tif`).
+directly in `SCENE_DIR` (top level only: SCENE_DIR also holds gt/ and the outputs). Photos are
+JPEG, PNG or TIFF with any case of extension (`.JPG`, `.Tif`).
 
 What is skipped, and how (every case is one line in `Scene.warnings` and, for image files, one
 row in `Scene.skipped`, which the run report lists under `skipped`):
