@@ -4,7 +4,7 @@ scene, from Python, and record both models in one Rerun file.
     .venv/bin/python examples/compare_with_stock.py [OUT_DIR]
 
 The same as `recon render-scene OUT/scene --preset facade-extreme` followed by
-`recon compare OUT/scene --out OUT/compare --stock-preset default,high`; open the recording
+`recon compare OUT/scene --out OUT/compare --stock-presets default,high`; open the recording
 with `recon view OUT/compare`.
 """
 

@@ -66,14 +66,16 @@ class OutputConfig:
     overwrite: bool = field(default=False, metadata={"flag": "--overwrite"})
     """Delete this tool's outputs in the output folder and start over (the content-addressed match cache is kept)."""
 
-    clean_cache: bool = field(default=False, metadata={"flag": "--clean-cache"})
-    """Also delete the cached features and pair matches in the output folder."""
 
     clean_points: bool = field(default=False, metadata={"flag": "--clean-points"})
     """Drop statistical outliers from points.ply."""
 
     progress: bool = field(default=True, metadata={"flag": "--progress/--no-progress"})
     """Progress bars on stderr."""
+
+    keep_cache: bool = field(default=True, metadata={"flag": "--keep-cache/--clean-cache"})
+    """Keep OUT/cache (features, pair results, stage records: what lets a rerun resume; often many
+    times the size of the outputs), or delete it after a successful run."""
 
     def __post_init__(self) -> None:
         if self.out is not None:
@@ -114,10 +116,10 @@ class PairsConfig:
 class MatchConfig:
     """The match stage: the pair matcher and where its pair tasks run."""
 
-    method: str = field(default="extra-affine", metadata={"flag": "--method"})
+    method: str = field(default="extra-affine", metadata={"flag": "--method", "choices": "matching.registry:METHODS"})
     """Pair matcher: extra-affine, sift, orb, asift, aorb."""
 
-    engine: str = field(default="threads", metadata={"flag": "--engine"})
+    engine: str = field(default="threads", metadata={"flag": "--engine", "choices": "recon.core.engine:ENGINES"})
     """Executor of the pair tasks: threads (a thread pool of --workers threads), dask (a local Dask
     cluster of --workers processes) or dask:ADDRESS (an existing Dask scheduler)."""
 
@@ -159,14 +161,22 @@ class TracksConfig:
 class DatabaseConfig:
     """The database stage: cameras, images, keypoints and raw matches in COLMAP's database."""
 
-    camera_mode: str = field(default="auto", metadata={"flag": "--camera-mode"})
-    """auto, single or per-image."""
+    camera_mode: str = field(default="auto", metadata={"flag": "--camera-mode",
+                                                       "choices": "recon.core.database:CAMERA_MODES"})
+    """auto (one camera when all photos share size and EXIF intrinsics), single or per-image."""
+
+    camera_model: str = field(default="SIMPLE_RADIAL", metadata={"flag": "--camera-model",
+                                                                 "choices": "recon.core.database:CAMERA_MODELS"})
+    """COLMAP camera model (COLMAP's ImageReader.camera_model): SIMPLE_RADIAL (f, cx, cy, k), PINHOLE
+    (fx, fy, cx, cy), SIMPLE_PINHOLE, RADIAL (k1, k2) or OPENCV (k1, k2, p1, p2)."""
 
     def __post_init__(self) -> None:
-        from recon.core.database import CAMERA_MODES
+        from recon.core.database import CAMERA_MODELS, CAMERA_MODES
 
         if self.camera_mode not in CAMERA_MODES:
             raise UserError(f"--camera-mode {self.camera_mode!r}: choose one of {', '.join(CAMERA_MODES)}")
+        if self.camera_model not in CAMERA_MODELS:
+            raise UserError(f"--camera-model {self.camera_model!r}: choose one of {', '.join(CAMERA_MODELS)}")
 
 
 @dataclass
@@ -340,6 +350,7 @@ class OptionSpec:
     type: Any  # the field's type (Literal types stay Literal)
     default: Any
     help: str
+    choices: tuple[str, ...] = ()  # the valid values of a str option (its metadata's "choices")
 
 
 def run_options() -> list[OptionSpec]:
@@ -351,8 +362,20 @@ def run_options() -> list[OptionSpec]:
             default = f.default_factory() if f.default is dataclasses.MISSING else f.default  # type: ignore[misc,operator]
             out.append(OptionSpec(path, flag.split("/")[0].lstrip("-").replace("-", "_"), flag,
                                   typing.get_type_hints(owner)[f.name], default,
-                                  " ".join(field_docs(owner).get(f.name, "").split())))
+                                  " ".join(field_docs(owner).get(f.name, "").split()),
+                                  _choices(f.metadata.get("choices"))))
     return out
+
+
+def _choices(ref: str | None) -> tuple[str, ...]:
+    """The values named by a field's "choices" metadata, "module:NAME" (imported lazily: this
+    module imports neither matching nor pycolmap at load time)."""
+    if not ref:
+        return ()
+    import importlib
+
+    module, _, name = ref.partition(":")
+    return tuple(str(c) for c in getattr(importlib.import_module(module), name))
 
 
 def option_paths() -> list[str]:

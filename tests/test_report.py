@@ -22,10 +22,11 @@ def _report(**kw) -> RunReport:
                     stages={"load": 0.5, "match": np.float32(9.5), "sfm": 2.25},
                     pairs_computed=2, pairs_cached=1, features_computed=4, features_reused=2,
                     camera_mode_used="single", sfm_options={"init_min_tri_angle": 4.0},
-                    sfm_growth=[{"step": 0, "model": 0, "image": "b.png", "registered_images": 2, "num_points3D": 50}],
+                    sfm_growth=[{"step": 0, "model": 0, "image": "b.png", "registered_images": 2, "num_points3D": 50,
+                                 "initial_pair": ["a.png", "b.png"]}],
                     pairs=[PairRow("a.png", "b.png", reference="a.png", best_view={"t": 2.0, "phi": 36.0, "s": 1.0},
                                    raw_matches=np.int64(300), merged_matches=280, verified_inliers=250,
-                                   config="CALIBRATED", seconds=1.5),
+                                   two_view_config="CALIBRATED", seconds=1.5),
                            PairRow("a.png", "c.png", raw_matches=90, merged_matches=85, verified_inliers=60,
                                    cached=True),
                            PairRow("b.png", "c.png", reason="no match")],
@@ -120,3 +121,60 @@ def test_summary_table_of_a_run_without_model():
     assert _row(text, "mean reprojection error (px)").split()[-2] == "-"
     assert "inconsistent" not in text  # the share row only when some observations are inconsistent
     assert "2.00 / 2.00" in text  # mean_length stands in when consistent_mean_length is absent
+
+
+def test_schema_version_versions_and_the_documented_schema():
+    """Every key of report.json and of a pair row is in docs/report-schema.md, with the versions."""
+    import re
+    from pathlib import Path
+
+    from recon.core.report import SCHEMA_VERSION
+
+    data = _report().to_dict()
+    assert data["schema_version"] == SCHEMA_VERSION == 2
+    assert set(data["versions"]) == {"recon", "python", "pycolmap", "opencv", "numpy"}
+    import pycolmap
+
+    assert data["versions"]["pycolmap"] == pycolmap.__version__
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "report-schema.md").read_text(encoding="utf-8")
+    documented = set(re.findall(r"`([a-zA-Z0-9_]+)`", doc))
+    assert set(data) <= documented, set(data) - documented
+    assert set(data["pairs"][0]) <= documented, set(data["pairs"][0]) - documented
+    assert "config" not in data["pairs"][0]  # no clash with the top-level config
+
+
+def test_version_1_reports_are_read_as_the_current_schema(tmp_path):
+    """A report written before schema 2 (pair `config`, no versions, growth without initial_pair)."""
+    from recon.core.report import read_report
+
+    old = _report().to_dict()
+    del old["schema_version"], old["versions"]
+    for p in old["pairs"]:
+        p["config"] = p.pop("two_view_config")
+    for g in old["sfm_growth"]:
+        g.pop("initial_pair", None)
+    path = tmp_path / "report.json"
+    path.write_text(json.dumps(old, default=float), encoding="utf-8")
+    rep = read_report(path)
+    assert rep.schema_version == 1 and rep.versions == {}
+    assert rep.pairs[0].two_view_config == "CALIBRATED" and rep.sfm_growth[0]["initial_pair"] is None
+    write_report(_report(), path)  # the current version reads back unchanged
+    assert read_report(path) == _report()
+
+
+def test_a_real_run_names_its_initial_pair_and_writes_absolute_paths(corner_sift_run):
+    """report.json of a real run (the rendered corner, SIFT): schema 2, the initial pair of the
+    model named on its first growth step (two registered images, the second is `image`)."""
+    from pathlib import Path
+
+    out, rep, _ = corner_sift_run
+    data = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    assert data["schema_version"] == 2 and data["versions"]["recon"]
+    assert Path(data["out"]).is_absolute() and Path(data["scene"]).is_absolute()
+    assert Path(data["out"]) == out.resolve()
+    first = data["sfm_growth"][0]
+    assert first["registered_images"] == 2 and len(first["initial_pair"]) == 2
+    assert first["image"] in first["initial_pair"] and set(first["initial_pair"]) <= set(data["registered"])
+    assert all(g["initial_pair"] is None for g in data["sfm_growth"][1:] if g["model"] == first["model"])
+    assert all("two_view_config" in p and "config" not in p for p in data["pairs"])
+    assert any(p["two_view_config"] for p in data["pairs"])

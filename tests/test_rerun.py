@@ -77,11 +77,15 @@ def test_run_recording_has_model_pairs_plots_and_summary(runs):
     assert len(report["pairs"]) == 6
     for p in report["pairs"]:  # every pair: match picture, Markdown info, COLMAP verdict
         base = "/" + pair_entity(p["image0"], p["image1"])
-        assert "EncodedImage:blob" in cols[f"{base}/matches"]
+        assert "EncodedImage:blob" in cols[f"{base}/matches/images"]
+        assert "LineStrips2D:strips" in cols[f"{base}/matches/inliers"]
+        assert "LineStrips2D:strips" in cols[f"{base}/matches/outliers"]
         assert "TextDocument:text" in cols[f"{base}/info"]
         assert "verified_inliers" in cols[f"{base}/verified"]
     for k in ("raw_matches", "inliers", "verified_inliers"):
         assert {"Scalars:scalars", "pair"} <= cols[f"/plots/pair/{k}"]
+    assert {"Scalars:scalars", "pair"} <= cols["/plots/pair_seconds/seconds"]  # its own plot: not on the counts' axis
+    assert "/plots/pair/seconds" not in cols
     assert "TextDocument:text" in cols["/summary"]
 
     from rerun.chunk import RrdReader
@@ -103,7 +107,8 @@ def test_run_recording_has_model_pairs_plots_and_summary(runs):
 
 @pytest.mark.slow
 def test_growth_replay_and_plots(runs):
-    """The fresh run records the model growing image by image; the reused run keeps the plots."""
+    """The fresh run records the model growing image by image; the reused run rebuilds that
+    replay from report.json and keeps the plots."""
     report = runs["report"]
     growth = report["sfm_growth"]
     assert runs["rc_reused"] == 0 and report["model_reused"]
@@ -122,7 +127,9 @@ def test_growth_replay_and_plots(runs):
     assert {"Points3D:positions", "registration"} <= fresh["/growth/points"]
     assert "TextDocument:text" in fresh["/growth/info"]
     reused = _columns(runs["out"] / "recording.rrd")
-    assert not any(k.startswith("/growth/") for k in reused)  # no replay without rebuilding
+    for name in report["registered"]:  # the reused model's replay, rebuilt from report.json
+        assert {"Transform3D:translation", "registration"} <= reused[f"/growth/cameras/{name}"]
+    assert {"Points3D:positions", "registration"} <= reused["/growth/points"]
     for ent in ("/plots/growth/registered_images", "/plots/growth/points3D", "/plots/bars/verified_inliers"):
         assert any(c.startswith("BarChart:") for c in reused[ent])
 
@@ -134,7 +141,8 @@ def test_match_logs_one_pair_with_coarse_heatmap(scene, tmp_path):
     assert main(["match", str(imgs[0]), str(imgs[1]), "--rerun", f"save:{rrd}"]) == 0
     cols = _columns(rrd)
     base = "/" + pair_entity(imgs[0].name, imgs[1].name)
-    assert "EncodedImage:blob" in cols[f"{base}/matches"]
+    assert "EncodedImage:blob" in cols[f"{base}/matches/images"]
+    assert "LineStrips2D:strips" in cols[f"{base}/matches/inliers"]
     assert "TextDocument:text" in cols[f"{base}/info"]
     assert "EncodedImage:blob" in cols[f"{base}/coarse"]
     assert any(c.startswith("Tensor:") for c in cols[f"{base}/coarse_scores"])

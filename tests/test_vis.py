@@ -40,3 +40,23 @@ def test_line_limit_and_no_matches():
     assert 20 <= rows[0] <= 60 and rows[1] >= 195  # 20 of 195 lines (anti-aliased: 1-3 rows each); all
     empty = draw_matches(img, img, _result(np.zeros((0, 2)), np.zeros((0, 2)), None))
     assert empty.shape == (400, 2000, 3) and not empty.any()
+
+
+def test_legend_names_colours_counts_and_the_line_limit():
+    from recon.viz.vis import legend_text
+
+    img = np.zeros((300, 500, 3), np.uint8)
+    ys = np.arange(5.0, 295.0, 2.0)  # 145 matches, every third an outlier
+    k = np.stack([np.full_like(ys, 250.0), ys], 1)
+    inl = np.arange(len(ys)) % 3 != 0
+    r = _result(k, k, inl)
+    text = legend_text(r, 100)
+    assert text == f"inliers {inl.sum()} (green)   outliers {(~inl).sum()} (red)   lines: 100 of 145 (sampled)"
+    assert legend_text(r, 145).endswith("lines: all 145")
+    plain, with_legend = draw_matches(img, img, r, max_lines=100), draw_matches(img, img, r, max_lines=100, legend=True)
+    band = with_legend.shape[0] - plain.shape[0]
+    assert with_legend.shape[1] == plain.shape[1] and 10 < band < 60
+    np.testing.assert_array_equal(with_legend[band:], plain)  # the picture below the band is unchanged
+    top = with_legend[:band].reshape(-1, 3).astype(int)  # the band shows green and red text
+    assert (np.abs(top - INLIER_BGR).max(axis=1) < 40).sum() > 20
+    assert (np.abs(top - OUTLIER_BGR).max(axis=1) < 40).sum() > 20

@@ -37,6 +37,7 @@ import typer
 from matching.errors import InputError
 from recon import _signals
 from recon.errors import UserError
+from recon.version import DISTRIBUTION, version  # noqa: F401  (re-exported)
 
 app = typer.Typer(
     name="recon",
@@ -44,12 +45,24 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # -h as well as --help on every command (click contexts inherit it from the group's)
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
+
+def _print_version(value: bool) -> None:
+    if value:
+        print(f"recon {version()}")
+        raise typer.Exit()
 
 
 @app.callback()
-def _global_options(verbose: Annotated[bool, typer.Option(
-        "-v", "--verbose", help="Debug logs and COLMAP's own log on stderr.")] = False) -> None:
+def _global_options(
+    verbose: Annotated[bool, typer.Option(
+        "-v", "--verbose", help="Debug logs and COLMAP's own log on stderr.", metavar="")] = False,
+    show_version: Annotated[bool, typer.Option(
+        "--version", help="Print the version and exit.", metavar="", is_eager=True,
+        callback=_print_version)] = False,
+) -> None:
     """Options before the command name (`recon -v run ...`): logging, set up once per command."""
     from recon.log import setup_logging
 
@@ -68,7 +81,9 @@ def _register_commands() -> None:
     import pkgutil
 
     for mod in sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")):
-        importlib.import_module(f"{__name__}.{mod}").register(app)
+        register = getattr(importlib.import_module(f"{__name__}.{mod}"), "register", None)
+        if register is not None:  # helper modules (options) add no command
+            register(app)
     _registered = True
 
 

@@ -9,8 +9,10 @@ from typing import Annotated, Optional
 
 import typer
 
+from recon.cli.options import image_size as parse_image_size
+from recon.cli.options import progress_option, seed_option, stock_presets, stock_presets_option, workers_option
 from recon.config import DEFAULT_MAX_SIZE
-from recon.cli._options import SEED_MAX, json_file
+from recon.cli._options import json_file
 
 bench_app = typer.Typer(name="bench", help="Benchmarks against ground truth.", no_args_is_help=True,
                         add_completion=False, pretty_exceptions_enable=False)
@@ -35,7 +37,7 @@ def parse_methods(text: str | None) -> list[str]:
 @bench_app.command("pairs")
 def pairs_cmd(
     data_root: Annotated[Path, typer.Argument(help="Folder holding oxford/, hpatches/ and/or evd/ pairs "
-                                                   "with ground-truth homographies.")],
+                                                   "with ground-truth homographies.", metavar="DATA_ROOT")],
     methods: Annotated[Optional[str], typer.Option(
         "--methods", help="Comma-separated methods (default: all: extra-affine,sift,orb,asift,aorb).")] = None,
     th: Annotated[float, typer.Option("--th", help="Correctness threshold in pixels (paper: sqrt(3)).")]
@@ -44,7 +46,8 @@ def pairs_cmd(
                                                      help="Write the rows to this JSON file.")] = None,
     only: Annotated[Optional[str], typer.Option(
         "--only", help="Run only pairs whose name contains this text (case-insensitive).")] = None,
-    no_progress: Annotated[bool, typer.Option("--no-progress", help="Hide the progress bar.")] = False,
+    progress: Annotated[bool, progress_option()] = True,
+    seed: Annotated[int, seed_option()] = 0,
     baseline_ransac_px: Annotated[float, typer.Option(
         "--baseline-ransac-px", help="Final RANSAC threshold of the baselines (5 = OpenCV's asift sample, "
                                      "i.e. stock; 1.5 = the extra-affine matcher's own filter).")] = 5.0,
@@ -71,10 +74,11 @@ def pairs_cmd(
     matchers = {}
     for m in names:
         try:
-            matchers[m] = get_matcher(m) if m == "extra-affine" else get_matcher(m, ransac_px=baseline_ransac_px)
+            matchers[m] = get_matcher(m, seed=seed) if m == "extra-affine" \
+                else get_matcher(m, seed=seed, ransac_px=baseline_ransac_px)
         except ImportError as e:  # a method whose module is not in this checkout yet
             raise UserError(f"method {m!r} is not available: {e}") from None
-    rows = run_bench(pairs, names, th=th, json_path=json_out, progress=not no_progress, matchers=matchers)
+    rows = run_bench(pairs, names, th=th, json_path=json_out, progress=progress, matchers=matchers)
     print_report(rows, th=th)
     if json_out is not None:
         typer.echo(f"wrote {len(rows)} rows to {json_out}")
@@ -83,11 +87,10 @@ def pairs_cmd(
 @bench_app.command("scenes")
 def scenes_cmd(
     root: Annotated[Path, typer.Argument(help="Folder of scene folders (photos in <scene>/images/ or at its "
-                                              "top level, optional ground truth in <scene>/gt/).")],
-    stock_presets: Annotated[str, typer.Option("--stock-presets", help="Comma-separated: default, high.")]
-        = "default",
-    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
-                                                     help="Write every scene's comparison to this JSON file.")] = None,
+                                              "top level, optional ground truth in <scene>/gt/).", metavar="ROOT")],
+    stock_presets_: Annotated[str, stock_presets_option()] = "default",
+    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file, help="Write every scene's comparison to this "
+                                                                   "JSON file.")] = None,
     scenes: Annotated[Optional[str], typer.Option("--scenes", help="Comma-separated scene names (default: all).")]
         = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Outputs: OUT/<scene>/{stock-*,extra_affine} "
@@ -95,7 +98,9 @@ def scenes_cmd(
     max_size: Annotated[int, typer.Option("--max-size", help="Working resolution (longer side, px; 0 = full).")]
         = DEFAULT_MAX_SIZE,
     pairs: Annotated[str, typer.Option("--pairs", help="Pair selection for both pipelines.")] = "exhaustive",
-    seed: Annotated[int, typer.Option("--seed", min=0, max=SEED_MAX)] = 0,
+    seed: Annotated[int, seed_option()] = 0,
+    workers: Annotated[int, workers_option()] = 0,
+    progress: Annotated[bool, progress_option()] = True,
 ) -> None:
     """`recon compare` on every scene under ROOT (stock COLMAP vs extra-affine), one summary table."""
     import sys
@@ -105,7 +110,7 @@ def scenes_cmd(
     from recon.core.outdir import claim_output
     from recon.eval.compare import run_scenes, scenes_table
 
-    presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
+    presets = stock_presets(stock_presets_)
     names = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
     root = root.expanduser()
     out_root = out if out is not None else Path("out") / "bench-scenes"
@@ -116,7 +121,8 @@ def scenes_cmd(
         raise UserError(f"{root}: no such folder")
     with claim_output(out_root, "bench", default_out=out is None, legacy=("*/compare.json",)) as out_root:
         results = run_scenes(root, out_root, names, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
-                             json_path=json_out, log=lambda m: err.print(f"recon: {m}", markup=False))
+                             workers=workers, progress=progress, json_path=json_out,
+                             log=lambda m: err.print(f"recon: {m}", markup=False))
     Console(width=None if sys.stdout.isatty() else 160).print(scenes_table(results, max_size))
     if json_out is not None:
         typer.echo(f"JSON: {json_out}")
@@ -130,15 +136,16 @@ def difficulty_cmd(
                                                        "between neighbours is 2*MAX_AZIMUTH/(N-1).")] = "3,4,5,7,9,13",
     max_azimuth: Annotated[float, typer.Option("--max-azimuth", help="Cameras spread over +-this many degrees "
                                                                      "about the facade normal.")] = 78.0,
-    stock_presets: Annotated[str, typer.Option("--stock-presets", help="Comma-separated: default, high.")]
-        = "default,high",
+    stock_presets_: Annotated[str, stock_presets_option()] = "default,high",
     image_size: Annotated[Optional[str], typer.Option("--image-size", help="Rendered size WxH (default: the "
                                                                            "preset's 800x600).")] = None,
     json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
                                                      help="Also copy the rows to this JSON file.")] = None,
-    seed: Annotated[int, typer.Option("--seed", min=0, max=SEED_MAX)] = 0,
-    recompute: Annotated[bool, typer.Option("--recompute", help="Run scenes again whose compare.json already exists.")]
-        = False,
+    seed: Annotated[int, seed_option()] = 0,
+    workers: Annotated[int, workers_option()] = 0,
+    progress: Annotated[bool, progress_option()] = True,
+    recompute: Annotated[bool, typer.Option("--recompute", help="Run scenes again whose compare.json already exists.",
+                                            metavar="")] = False,
 ) -> None:
     """Difficulty curve: azimuth step between views vs registered images and rotation error (stock vs ours)."""
     import shutil
@@ -152,16 +159,15 @@ def difficulty_cmd(
 
     try:
         counts = [int(v) for v in views.split(",") if v.strip()]
-        size = tuple(int(x) for x in image_size.lower().split("x")) if image_size else None
     except ValueError:
-        raise UserError(f"--views {views!r} / --image-size {image_size!r}: expected e.g. 3,4,5 and 800x600") from None
-    if size is not None and (len(size) != 2 or min(size) < 64):
-        raise UserError(f"--image-size {image_size!r}: expected WxH, each at least 64 px")
-    presets = [p.strip() for p in stock_presets.split(",") if p.strip()]
+        raise UserError(f"--views {views!r}: expected numbers of views, e.g. 3,4,5") from None
+    size = parse_image_size(image_size)
+    presets = stock_presets(stock_presets_)
     err = Console(stderr=True, highlight=False)
     with claim_output(out, "bench", legacy=("difficulty.json",)) as out:
         data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]
-                              recompute=recompute, log=lambda m: err.print(f"recon: {m}", markup=False))
+                              recompute=recompute, workers=workers, progress=progress,
+                              log=lambda m: err.print(f"recon: {m}", markup=False))
     Console(width=None if sys.stdout.isatty() else 160).print(difficulty_table(data))
     js = Path(out) / "difficulty.json"
     if json_out is not None:

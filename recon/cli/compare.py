@@ -8,28 +8,28 @@ from typing import Annotated, Optional
 
 import typer
 
+from recon.cli.options import (deprecated_stock_preset_option, progress_option, seed_option, stock_presets,
+                               stock_presets_option, workers_option)
 from recon.config import DEFAULT_MAX_SIZE
-from recon.cli._options import SEED_MAX
 
 
 def register(app: typer.Typer) -> None:
     @app.command("compare")
     def compare(
         scene_dir: Annotated[Path, typer.Argument(help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR, "
-                                                       "optional ground truth in SCENE_DIR/gt/.")],
+                                                       "optional ground truth in SCENE_DIR/gt/.", metavar="SCENE_DIR")],
         out: Annotated[Optional[Path], typer.Option(
             "--out", help="Output folder (default: SCENE_DIR/compare): stock-<preset>/, extra_affine/, "
                           "compare.json.")] = None,
-        stock_preset: Annotated[str, typer.Option(
-            "--stock-preset", help="Stock COLMAP preset: default or high (comma-separated for several).")] = "default",
+        stock_presets_: Annotated[str, stock_presets_option()] = "default",
+        stock_preset: Annotated[Optional[str], deprecated_stock_preset_option()] = None,
         max_size: Annotated[int, typer.Option("--max-size", help="Working resolution of both pipelines "
                                                                  "(longer side, px; 0 = full).")] = DEFAULT_MAX_SIZE,
         pairs: Annotated[str, typer.Option("--pairs", help="exhaustive, sequential:K, or a file of name pairs.")]
             = "exhaustive",
-        seed: Annotated[int, typer.Option("--seed", min=0, max=SEED_MAX,
-                                          help="Seed for the matcher and COLMAP's RANSAC.")] = 0,
-        progress: Annotated[bool, typer.Option("--progress/--no-progress",
-                                               help="recon run's progress bars on stderr.")] = False,
+        seed: Annotated[int, seed_option()] = 0,
+        workers: Annotated[int, workers_option()] = 0,
+        progress: Annotated[bool, progress_option()] = True,
         rerun: Annotated[str, typer.Option(
             "--rerun", help="Rerun sink for both models in one frame: save[:PATH] (default: OUT/compare.rrd), "
                             "spawn, connect[:URL] or none.")] = "save",
@@ -49,8 +49,8 @@ def register(app: typer.Typer) -> None:
         from recon.viz.compare_rerun import COMPARE_RECORDING, log_comparison
         from recon.viz.rerun_log import find_viewer, parse_sink
 
-        presets = [p.strip() for p in stock_preset.split(",") if p.strip()]
-        RunConfig(max_size=max_size, pairs=pairs, seed=seed)  # validates the shared options (UserError)
+        presets = stock_presets(stock_presets_, stock_preset)
+        RunConfig.from_options(max_size=max_size, pairs=pairs, seed=seed)  # validates the shared options (UserError)
         require_images(scene_dir.expanduser())  # before anything is created
         out_dir = (out or scene_dir / "compare").expanduser().absolute()
         try:
@@ -62,7 +62,7 @@ def register(app: typer.Typer) -> None:
         err = Console(stderr=True, highlight=False)
         with claim_output(out_dir, "compare", default_out=out is None, legacy=("compare.json",)) as out_dir:
             res = compare_scene(scene_dir, out_dir, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
-                                progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
+                                workers=workers, progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
                                 on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
             console = Console(width=None if sys.stdout.isatty() else 140)
             console.print(compare_table(res))

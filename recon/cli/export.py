@@ -8,6 +8,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from recon.cli.options import flag, workers_option
+
 
 class ExportFormat(str, Enum):
     """The formats of `recon.export.FORMATS` (an Enum so --help lists them)."""
@@ -28,17 +30,18 @@ NEXT_STEP = {
 def register(app: typer.Typer) -> None:
     @app.command("export")
     def export(
-        out_dir: Annotated[Path, typer.Argument(help="A `recon run` output folder (holds sparse/0).")],
+        out_dir: Annotated[Path, typer.Argument(help="A `recon run` output folder (holds sparse/0).",
+                                                metavar="OUT_DIR")],
         format: Annotated[ExportFormat, typer.Option(
             "--format", "-f", help="colmap-text: the model as COLMAP text (sparse/0/*.txt); 3dgs: undistorted "
                                    "images/ + sparse/0 with PINHOLE cameras (Gaussian splatting); nerfstudio: "
                                    "transforms.json + images/ + sparse_pc.ply.")],
         to: Annotated[Optional[Path], typer.Option("--to", help="Destination folder (default: OUT_DIR/export/FORMAT).")] = None,
-        overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace a previous export in --to.")] = False,
-        keep_distortion: Annotated[bool, typer.Option(
+        overwrite: Annotated[bool, flag("--overwrite", help="Replace a previous export in --to.")] = False,
+        keep_distortion: Annotated[bool, flag(
             "--keep-distortion", help="nerfstudio only: copy the original photos and write their distortion "
                                       "(OPENCV k1, k2, p1, p2) instead of undistorted PINHOLE images.")] = False,
-        workers: Annotated[int, typer.Option("--workers", help="Threads for undistortion (0 = all cores).")] = 0,
+        workers: Annotated[int, workers_option("Threads for undistortion (0 = all cores).")] = 0,
     ) -> None:
         """Export a reconstruction for Gaussian splatting, nerfstudio or COLMAP's text format."""
         import sys

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import numpy as np
 import typer
@@ -15,7 +15,8 @@ from matching.metrics import DEFAULT_TH, gt_reference, precision
 from matching.registry import METHODS, get_matcher
 from matching.store import FeatureStore
 from matching.types import PairResult
-from recon.cli._options import SEED_MAX, image_file, json_file
+from recon.cli._options import image_file, json_file
+from recon.cli.options import choices_metavar, seed_option, workers_option
 
 console = Console(stderr=False, highlight=False)
 
@@ -71,18 +72,19 @@ def _print(summary: dict, result: PairResult) -> None:
 
 
 def match_command(
-    img_a: Path = typer.Argument(..., help="First image (image 0)."),
-    img_b: Path = typer.Argument(..., help="Second image (image 1)."),
-    method: str = typer.Option("extra-affine", "--method", "-m", help=f"One of: {', '.join(METHODS)}."),
+    img_a: Path = typer.Argument(..., help="First image (image 0).", metavar="IMG_A"),
+    img_b: Path = typer.Argument(..., help="Second image (image 1).", metavar="IMG_B"),
+    method: str = typer.Option("extra-affine", "--method", "-m", help="Pair matcher.",
+                               metavar=choices_metavar(METHODS)),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth homography file (image 0 -> image 1)."),
-    save_vis: Optional[Path] = typer.Option(None, "--save-vis", callback=image_file,
-                                            help="Write the matches drawn side by side (PNG/JPG)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file,
-                                            help="Write the result summary and matched points as JSON."),
+    save_vis: Optional[Path] = typer.Option(None, "--save-vis", callback=image_file, help="Write the matches drawn side by side, with "
+                                                                     "a legend and counts (PNG/JPG)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file, help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
-    variant: str = typer.Option("default", "--variant", help="extra-affine only: 'default' or 'paper' (plain reading)."),
-    seed: int = typer.Option(0, "--seed", min=0, max=SEED_MAX,
-                             help="Seed of every RANSAC (results are deterministic per seed)."),
+    variant: str = typer.Option("default", "--variant", metavar=choices_metavar(("default", "paper")),
+                                help="extra-affine only: the default, or the paper's plain reading."),
+    seed: Annotated[int, seed_option()] = 0,
+    workers: Annotated[int, workers_option("Threads of the extra-affine matcher's views (0 = all cores).")] = 0,
     rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
 ) -> None:
     """Match two images and report the reference choice, best view, matches and timings."""
@@ -111,8 +113,10 @@ def match_command(
     store.add_image(names[0], gray[0])
     store.add_image(names[1], gray[1])
     overrides: dict = {"seed": seed}
-    if method == "extra-affine" and variant == "paper":
-        overrides["variant"] = "paper"
+    if method == "extra-affine":
+        overrides["workers"] = workers
+        if variant == "paper":
+            overrides["variant"] = "paper"
     matcher = get_matcher(method, **overrides)
     result = matcher.match(store, names[0], names[1])
     summary = summarize(result, names, H_gt, th)
@@ -120,7 +124,7 @@ def match_command(
     if result.num_matches == 0:
         console.print(f"no match: {result.reason or 'the images share no features'}")
     if save_vis is not None:
-        write_image_atomic(save_vis, draw_matches(load_color(img_a), load_color(img_b), result))
+        write_image_atomic(save_vis, draw_matches(load_color(img_a), load_color(img_b), result, legend=True))
         console.print(f"wrote {save_vis}")
     if json_out is not None:
         write_json_atomic(json_out, summary)

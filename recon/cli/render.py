@@ -3,21 +3,26 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
 
-from recon.cli._options import SEED_MAX
+from recon.cli.options import flag, seed_option
+from recon.cli.options import image_size as parse_image_size
 
 
 def render_command(
-    out_dir: Optional[Path] = typer.Argument(None, help="Folder to write images/ and gt/ into.", show_default=False),
+    out_dir: Optional[Path] = typer.Argument(None, help="Folder to write images/ and gt/ into.", show_default=False,
+                                             metavar="OUT_DIR"),
     preset: str = typer.Option("corner", "--preset", help="Scene preset (see --list-presets)."),
     texture: Optional[list[Path]] = typer.Option(None, "--texture", help="Photo(s) to texture the planes with (repeatable)."),
-    seed: int = typer.Option(0, "--seed", min=0, max=SEED_MAX, help="Seed of the procedural textures and sensor noise."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT_DIR/images and OUT_DIR/gt (nothing else)."),
-    list_presets: bool = typer.Option(False, "--list-presets", help="List the presets and exit."),
+    image_size: Optional[str] = typer.Option(None, "--image-size", help="Rendered size WxH, e.g. 800x600 (default: "
+                                                                        "the preset's)."),
+    seed: Annotated[int, seed_option("Seed of the procedural textures and sensor noise.")] = 0,
+    overwrite: Annotated[bool, flag("--overwrite", help="Replace OUT_DIR/images and OUT_DIR/gt (nothing else).")]
+        = False,
+    list_presets: Annotated[bool, flag("--list-presets", help="List the presets and exit.")] = False,
 ) -> None:
     """Render piecewise-planar scenes from cameras with viewing angles up to 80+ degrees."""
     from recon.core.outdir import output_lock
@@ -36,6 +41,7 @@ def render_command(
         get_preset(preset)
     except ValueError as e:
         raise UserError(str(e)) from None
+    size = parse_image_size(image_size)
     for t in texture or []:
         if not t.expanduser().is_file():
             raise UserError(f"--texture {t}: no such file")
@@ -46,7 +52,7 @@ def render_command(
     ok = False
     try:
         with output_lock(out_dir):  # one render (or run) at a time in this folder
-            scene = render_scene(out_dir, preset, texture or None, seed, overwrite=overwrite)
+            scene = render_scene(out_dir, preset, texture or None, seed, overwrite=overwrite, image_size=size)
         ok = True
     finally:
         if not ok and created:  # nothing half-made left behind

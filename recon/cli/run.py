@@ -16,6 +16,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 
+from recon.cli.options import choices_metavar
 from recon.config import PRESETS, run_options
 
 CLI_TYPES = {bool, int, float, str, Path}
@@ -30,20 +31,28 @@ def _cli_type(t: Any) -> Any:
     return t if t in CLI_TYPES else str
 
 
+def metavar(t: Any, choices: tuple[str, ...]) -> str | None:
+    """--help's type column: the choices (`<a|b|c>`), nothing for a flag, else typer's own."""
+    if choices:
+        return choices_metavar(choices)
+    return "" if t is bool else None
+
+
 def _signature() -> inspect.Signature:
     """run()'s parameters: the scene folder, the generated config options, then the CLI's own."""
     P = inspect.Parameter
     params = [
         P("ctx", P.KEYWORD_ONLY, annotation=typer.Context),
         P("scene_dir", P.KEYWORD_ONLY, annotation=Annotated[Path, typer.Argument(
-            help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR.")]),
+            help="Scene folder: photos in SCENE_DIR/images/ or SCENE_DIR.", metavar="SCENE_DIR")]),
     ]
     for o in run_options():
         params.append(P(o.name, P.KEYWORD_ONLY, default=o.default,
-                        annotation=Annotated[_cli_type(o.type), typer.Option(o.flag, help=o.help)]))
+                        annotation=Annotated[_cli_type(o.type), typer.Option(
+                            o.flag, help=o.help, metavar=metavar(o.type, o.choices))]))
     params += [
         P("preset", P.KEYWORD_ONLY, default="default", annotation=Annotated[str, typer.Option(
-            "--preset", help=f"Named configuration: {', '.join(PRESETS)} (see recon.config.PRESETS).")]),
+            "--preset", help="Named configuration (see recon.config.PRESETS).", metavar=choices_metavar(PRESETS))]),
         P("config", P.KEYWORD_ONLY, default=None, annotation=Annotated[Optional[Path], typer.Option(  # noqa: UP045
             "--config", help="TOML or JSON file of options (nested as report.json's config; the matcher's "
                              "options in a matcher table).")]),
@@ -67,6 +76,27 @@ def build_config(ctx: typer.Context, kw: dict[str, Any]) -> Any:
 
     given = {o.path: kw[o.name] for o in run_options() if given_on_command_line(o.name)}
     return build_run_config(kw["preset"], kw["config"], given, kw["set_"])
+
+
+STALE_RECORDING_NAME = "recording.previous.rrd"
+
+
+def retire_stale_recording(recording: Path, saved: Path | None, report: Any, overwrite: bool) -> Path | None:
+    """A recording never outlives the model it shows: when this run wrote a new model (or none)
+    and did not write `recording` itself (`--rerun none`, or save:PATH elsewhere), an older
+    OUT/recording.rrd is deleted (--overwrite) or renamed to recording.previous.rrd, so `recon
+    view OUT` cannot show a different run. Returns the renamed file, if any."""
+    import sys
+
+    if saved == recording or not recording.is_file() or (report.model_reused and not overwrite):
+        return None
+    if overwrite:
+        recording.unlink()
+        return None
+    old = recording.with_name(STALE_RECORDING_NAME)
+    recording.replace(old)
+    print(f"recon: {recording.name} showed an older model; renamed to {old.name}", file=sys.stderr)
+    return old
 
 
 def run(**kw: Any) -> None:
@@ -103,16 +133,14 @@ def run(**kw: Any) -> None:
     ok = False
     # one run per output folder (OUT/.recon.lock); a foreign folder is refused before anything is written
     with claim_output(out_dir, "run", default_out=cfg.output.out is None, marker=False):
-        if cfg.output.clean_cache:
+        if cfg.output.overwrite and not cfg.output.keep_cache:  # --overwrite --clean-cache: from scratch
             clean_content_cache(out_dir)
         try:
             report = run_scene(scene_dir, cfg, observer=[logger] if logger else None)
             ok = True
         finally:  # Ctrl-C too: `recon.cli.main` prints the one line and the exit code
             saved = logger.close(ok) if logger else None
-    stale = out_dir / RECORDING_NAME
-    if cfg.output.overwrite and saved != stale and stale.is_file():  # --overwrite: no recording of an older run
-        stale.unlink()
+    retire_stale_recording(out_dir / RECORDING_NAME, saved, report, cfg.output.overwrite)
     Console().print(summary_table(report))
     if saved is not None:
         print(f"recon: Rerun recording {saved} ({saved.stat().st_size / 1e6:.1f} MB); "

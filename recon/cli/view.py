@@ -48,13 +48,53 @@ def check_recording(path: Path) -> Path:
     return path
 
 
+WEB_PORT = 9090  # rerun's default web viewer port
+GRPC_PORT = 9876  # rerun's default gRPC port (the web page streams the recording from it)
+
+
+def has_display() -> bool:
+    """Whether a native window can open: always on macOS and Windows; on Linux and other Unixes,
+    when DISPLAY (X11) or WAYLAND_DISPLAY is set."""
+    import os
+    import sys
+
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def web_command(exe: str, rrd: Path, port: int = WEB_PORT, grpc_port: int = GRPC_PORT,
+                bind: str = "127.0.0.1") -> list[str]:
+    """`rerun --serve-web` for one recording: the web viewer on http://BIND:PORT, the recording
+    streamed to it from a gRPC server on GRPC_PORT (the browser needs both ports)."""
+    return [exe, "--serve-web", "--bind", bind, "--web-viewer-port", str(port), "--port", str(grpc_port),
+            str(rrd)]
+
+
+def web_url(port: int = WEB_PORT, grpc_port: int = GRPC_PORT, host: str = "localhost") -> str:
+    """The address to open: the web viewer, told where to read the recording from."""
+    from urllib.parse import quote
+
+    return f"http://{host}:{port}/?url={quote(f'rerun+http://{host}:{grpc_port}/proxy', safe='')}"
+
+
 def register(app: typer.Typer) -> None:
     @app.command("view")
     def view(
-        target: Annotated[Path, typer.Argument(help="A `recon run` or `recon compare` output folder, or a .rrd file.")],
+        target: Annotated[Path, typer.Argument(help="A `recon run` or `recon compare` output folder, or a .rrd file.",
+                                               metavar="TARGET")],
+        web: Annotated[bool, typer.Option(
+            "--web", metavar="", help="Serve Rerun's web viewer instead of opening a window (for a machine "
+                                      "without a display; over ssh, forward --port and --grpc-port).")] = False,
+        port: Annotated[int, typer.Option("--port", help="--web: the web viewer's HTTP port.")] = WEB_PORT,
+        grpc_port: Annotated[int, typer.Option("--grpc-port", help="--web: the port the recording is "
+                                                                   "streamed from.")] = GRPC_PORT,
+        bind: Annotated[str, typer.Option("--bind", help="--web: address to listen on (0.0.0.0 = every "
+                                                         "interface).")] = "127.0.0.1",
     ) -> None:
         """Open a Rerun recording (OUT_DIR/recording.rrd or compare.rrd) in the Rerun viewer."""
         import subprocess
+        import sys
 
         from recon.errors import UserError
         from recon.viz.rerun_log import find_viewer
@@ -65,11 +105,21 @@ def register(app: typer.Typer) -> None:
             raise UserError("the Rerun viewer (`rerun`) is not installed; `pip install rerun-sdk` "
                             f"or open {rrd} at https://rerun.io/viewer")
         check_recording(rrd)
+        if not web and not has_display():
+            raise UserError(f"no display here (DISPLAY and WAYLAND_DISPLAY are unset); use `recon view --web "
+                            f"{target}` and open the address it prints in a browser")
+        cmd = [exe, str(rrd)]
+        if web:
+            cmd = web_command(exe, rrd, port, grpc_port, bind)
+            print(f"recon: serving {rrd} with Rerun's web viewer; open {web_url(port, grpc_port)} "
+                  "(Ctrl-C to stop)", file=sys.stderr)
         from recon._signals import unblocked_for_children
 
         try:
             with unblocked_for_children():  # the viewer must answer Ctrl-C / SIGTERM itself
-                code = subprocess.call([exe, str(rrd)])
+                code = subprocess.call(cmd)
+        except KeyboardInterrupt:  # Ctrl-C ends the viewer (same process group) and this command
+            return
         except OSError as e:
             raise UserError(f"cannot start the Rerun viewer {exe}: {e.strerror or e}") from None
         if code:

@@ -39,6 +39,9 @@ import pycolmap
 from numpy.typing import NDArray
 
 CAMERA_MODES: tuple[str, ...] = ("auto", "single", "per-image")
+CAMERA_MODELS: tuple[str, ...] = ("SIMPLE_RADIAL", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL", "OPENCV")
+"""COLMAP camera models `recon run --camera-model` offers (the first is the default, COLMAP's own);
+`recon export` undistorts every one of them."""
 COLMAP_PIXEL_OFFSET = 0.5  # COLMAP keypoint = OpenCV keypoint + 0.5
 # the tables the pipeline and COLMAP's mapper read (pycolmap >= 3.12 schema)
 REQUIRED_TABLES: tuple[str, ...] = ("cameras", "images", "keypoints", "matches", "two_view_geometries",

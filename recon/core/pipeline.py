@@ -52,11 +52,22 @@ def run_scene(scene_dir: str | Path, cfg: RunConfig | None = None, *, matcher: P
     root, image_dir = root.resolve(), image_dir.resolve()
     out = (cfg.output.out or root / "recon").resolve()
     notes = prepare_out(out, root, candidates, cfg.output.overwrite, default_out=cfg.output.out is None,
-                        clean_cache=cfg.output.clean_cache)
+                        clean_cache=cfg.output.overwrite and not cfg.output.keep_cache)
     report = RunReport(scene=str(root), out=str(out), config=cfg.to_dict(),
                        method=getattr(matcher, "name", "") if matcher is not None else cfg.match.method)
     run = Run(cfg, root, out, report, as_observer(observer), StageState(out / "cache" / "state.json"), matcher)
     for note in notes:
         run.warn(note)
     with output_lock(out):  # one run per output folder (re-entrant inside the CLI's own lock)
-        return run_stages(run, scene_stages())
+        report = run_stages(run, scene_stages())
+    if report.ok and not cfg.output.keep_cache:
+        clean_cache(out)
+    return report
+
+
+def clean_cache(out: Path) -> None:
+    """`--clean-cache`: delete OUT/cache after a successful run (the next run starts from scratch;
+    the outputs, database.db, sparse/, points.ply and report.json, stay)."""
+    import shutil
+
+    shutil.rmtree(out / "cache", ignore_errors=True)

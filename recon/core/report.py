@@ -1,7 +1,9 @@
 """The run report (`OUT/report.json`) and the console summary table.
 
-`report.json` keys (all always present):
+`report.json` keys (all always present; docs/report-schema.md lists every key with its unit):
 
+* `schema_version` (`SCHEMA_VERSION`; bumped when a key is renamed or changes meaning; reports
+  without it are version 1) and `versions` (the tool, Python, pycolmap, OpenCV, numpy);
 * `status`: "ok", or "no_model" when SfM registered nothing (then `message` says why);
 * `num_images` (usable images), `registered_images`, `num_points3D`, `mean_track_length` and
   `mean_reprojection_error` (px) of the kept (largest) model, `num_models`, `model_sizes`;
@@ -19,7 +21,8 @@
 * `pairs`: one row per pair in pair order: `image0`, `image1`, `reference` (name of the image
   the matcher simulated, or null), `best_view` ({t, phi, s} or null), `raw_matches` (matcher
   output), `merged_matches` (after keypoint merging), `verified_inliers` (COLMAP's two-view
-  geometry), `config` (COLMAP's two-view model), `cached` (loaded from the pair cache), `reason`;
+  geometry), `two_view_config` (COLMAP's two-view model; `config` in version 1), `cached`
+  (loaded from the pair cache), `reason`;
 * `skipped`: [{name, reason}] for unreadable, corrupt, duplicate or un-importable images;
 * `warnings`, `config` (the RunConfig, nested as `recon.config.RunConfig.to_dict`), `method` (the
   matcher, or `colmap-sift`), `preset` (stock COLMAP's preset; empty for `recon run`),
@@ -34,21 +37,30 @@
   (`options_dict`), every field, not a hand-picked few;
 * `sfm_growth`: one row per registration step of incremental mapping, in order: `step`,
   `model` (index of the model being built), `image` (just registered), `registered_images`
-  and `num_points3D` of that model right after the step (kept from the run that built the
-  model when the model is reused).
+  and `num_points3D` of that model right after the step, and `initial_pair` (both images of the
+  model's initial pair, by image id, on the model's first step; null on the others and in runs
+  made before version 2) (kept from the run that built the model when the model is reused).
+
+Units: seconds (`seconds*`, `stages`), MB = 10^6 bytes (`*_mb`), pixels of the full-resolution
+photo (`mean_reprojection_error`), degrees (`best_view.phi`); `scene` and `out` are absolute.
+`read_report` reads any version back as the current one.
 
 Files are written to a temporary name and `os.replace`d, so a kill never leaves half a report.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from recon.core.jsonio import write_json_atomic
+
+SCHEMA_VERSION = 2
+"""report.json's schema: 1 = before the field existed; 2 = `schema_version`, `versions`, pair rows'
+`two_view_config` (was `config`), `sfm_growth[].initial_pair`."""
 
 
 @dataclass
@@ -60,7 +72,7 @@ class PairRow:
     raw_matches: int = 0
     merged_matches: int = 0
     verified_inliers: int = 0
-    config: str = ""
+    two_view_config: str = ""  # COLMAP's TwoViewGeometry configuration, e.g. CALIBRATED, PLANAR
     cached: bool = False
     seconds: float = 0.0
     reason: str = ""
@@ -70,6 +82,8 @@ class PairRow:
 class RunReport:
     scene: str
     out: str
+    schema_version: int = SCHEMA_VERSION
+    versions: dict[str, str] = field(default_factory=dict)
     status: str = "ok"
     message: str = ""
     num_images: int = 0
@@ -114,6 +128,12 @@ class RunReport:
     def ok(self) -> bool:
         return self.status == "ok"
 
+    def __post_init__(self) -> None:
+        if not self.versions:
+            from recon.version import library_versions
+
+            self.versions = library_versions()
+
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
@@ -137,6 +157,37 @@ class RunReport:
 
 def write_report(report: RunReport, path: str | Path) -> None:
     write_json_atomic(path, report.to_dict())
+
+
+def upgrade_report(data: dict[str, Any]) -> dict[str, Any]:
+    """A report.json of any schema version as the current one (a copy): version 1's pair `config`
+    becomes `two_view_config`, growth rows get `initial_pair` null, missing keys their defaults."""
+    out = dict(data)
+    out.setdefault("schema_version", 1)
+    out.setdefault("versions", {})
+    pairs = []
+    for p in out.get("pairs", []):
+        p = dict(p)
+        if "config" in p and "two_view_config" not in p:
+            p["two_view_config"] = p.pop("config")
+        pairs.append(p)
+    out["pairs"] = pairs
+    out["sfm_growth"] = [{"initial_pair": None, **g} for g in out.get("sfm_growth", [])]
+    return out
+
+
+def read_report(path: str | Path) -> RunReport:
+    """OUT/report.json (any schema version) as a RunReport; keys this version does not know are dropped."""
+    import json
+
+    data = upgrade_report(json.loads(Path(path).read_text(encoding="utf-8")))
+    known = {f.name for f in fields(RunReport)}
+    pair_keys = {f.name for f in fields(PairRow)}
+    data = {k: v for k, v in data.items() if k in known}
+    data["pairs"] = [PairRow(**{k: v for k, v in p.items() if k in pair_keys}) for p in data.get("pairs", [])]
+    report = RunReport(**data)
+    report.versions = dict(data["versions"])  # as recorded (empty for version 1), not this process's
+    return report
 
 
 def options_dict(options: Any) -> dict[str, Any]:

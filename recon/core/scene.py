@@ -1,7 +1,9 @@
 """Scene input: find the photos of a scene folder, decode them once, and flag bad ones.
 
-A scene folder holds its photos in `SCENE_DIR/images/` or directly in `SCENE_DIR` (top level
-only, no recursion). Photos are JPEG, PNG or TIFF with any case of extension (`.JPG`, `.Tif`).
+A scene folder holds its photos in `SCENE_DIR/images/` (searched recursively, like COLMAP's
+ImageReader: a photo in `images/cam1/a.jpg` is named `cam1/a.jpg`, with `/` on every platform) or
+directly in `SCENE_DIR` (top level only: SCENE_DIR also holds gt/ and the outputs). Photos are
+JPEG, PNG or TIFF with any case of extension (`.JPG`, `.Tif`).
 
 What is skipped, and how (every case is one line in `Scene.warnings` and, for image files, one
 row in `Scene.skipped`, which the run report lists under `skipped`):
@@ -21,6 +23,12 @@ row in `Scene.skipped`, which the run report lists under `skipped`):
 Images of different sizes are fine (each gets its own camera in `--camera-mode auto`).
 Names with spaces and non-ASCII characters work: files are read as bytes and decoded with
 `cv2.imdecode`, never through OpenCV's path-based readers.
+
+EXIF orientation: not applied, on purpose. COLMAP (pycolmap 4.2's `import_images` and `Bitmap`)
+ignores the tag: a 100x60 JPEG tagged "rotate 90" gets a 100x60 camera. Rotating the pixels here
+would put our keypoints in a frame that does not match the database's image sizes; in the stored
+frame the rotation is simply part of each camera's pose. Images with a non-trivial orientation get
+one warning (their model cameras are in the stored, unrotated frame; `recon export` writes them so).
 
 Every kept image is decoded once per run to 8-bit gray (EXIF orientation ignored, the same pixel
 frame COLMAP uses) and downscaled to the working resolution (`max_size`, longer side) for
@@ -139,18 +147,40 @@ def not_regular_images(image_dir: Path) -> list[tuple[str, str]]:
     return out
 
 
-def list_candidates(image_dir: Path) -> tuple[list[str], list[str]]:
-    """(image file names, other file names) at the top level of `image_dir`, both sorted."""
-    try:
-        entries = sorted(image_dir.iterdir(), key=lambda p: p.name)
-    except OSError as e:
-        raise InputError(f"{image_dir}: cannot list folder ({e.strerror or e})") from None
+def list_candidates(image_dir: Path, recursive: bool | None = None) -> tuple[list[str], list[str]]:
+    """(image file names, other file names) in `image_dir`, both sorted; with `recursive` (default:
+    when the folder is an `images/` folder), in its subfolders too, named by their relative path
+    with `/` (hidden folders are not entered)."""
+    if recursive is None:
+        recursive = image_dir.name == "images"
     images, others = [], []
-    for p in entries:
-        if p.name.startswith(".") or not p.is_file():
-            continue
-        (images if p.suffix.lower() in IMAGE_EXTS else others).append(p.name)
-    return images, others
+
+    def walk(folder: Path, prefix: str) -> None:
+        try:
+            entries = sorted(folder.iterdir(), key=lambda p: p.name)
+        except OSError as e:
+            raise InputError(f"{folder}: cannot list folder ({e.strerror or e})") from None
+        for p in entries:
+            if p.name.startswith("."):
+                continue
+            if recursive and p.is_dir():
+                walk(p, f"{prefix}{p.name}/")
+            elif p.is_file():
+                (images if p.suffix.lower() in IMAGE_EXTS else others).append(prefix + p.name)
+
+    walk(image_dir, "")
+    return sorted(images), sorted(others)
+
+
+def exif_orientation(path: Path) -> int:
+    """The EXIF orientation tag (1-8; 1 = as stored) of a photo, read from its header; 1 when absent."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as f:
+            return int(f.getexif().get(0x0112, 1) or 1)
+    except Exception:  # unreadable headers are reported by the decoder, not here
+        return 1
 
 
 def _decode_one(path: Path, max_size: int | None) -> tuple[NDArray[np.uint8], int, int, str] | str:
@@ -224,6 +254,11 @@ def scan_scene(scene_dir: str | Path, max_size: int | None = 1600, workers: int 
         scene.images.append(SceneImage(name, image_dir / name, w, h, digest,
                                        int(work.shape[1]), int(work.shape[0])))
         grays[name] = work
+    rotated = [im.name for im in scene.images if exif_orientation(im.path) != 1]
+    if rotated:
+        shown = ", ".join(rotated[:3]) + (f" and {len(rotated) - 3} more" if len(rotated) > 3 else "")
+        scene.warnings.append(f"{len(rotated)} photo(s) carry an EXIF rotation ({shown}); used as stored, as COLMAP "
+                              "does: their cameras see the unrotated pixels")
     return scene, grays
 
 

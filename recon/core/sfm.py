@@ -142,6 +142,7 @@ class GrowthStep:
     index of the model being built (a new one starts when the view graph falls apart),
     `image` is the image just registered (for the initial pair: the second image of the pair;
     `images` lists every image registered in this model so far, in registration order).
+    `initial_pair` names both images of the model's initial pair on its first step, else None.
     """
     step: int
     model: int
@@ -149,10 +150,12 @@ class GrowthStep:
     images: tuple[str, ...]
     registered_images: int
     num_points3D: int
+    initial_pair: tuple[str, str] | None = None
 
     def to_dict(self) -> dict:
         return dict(step=self.step, model=self.model, image=self.image, registered_images=self.registered_images,
-                    num_points3D=self.num_points3D)
+                    num_points3D=self.num_points3D,
+                    initial_pair=list(self.initial_pair) if self.initial_pair else None)
 
 
 StepHook = Callable[[GrowthStep, pycolmap.Reconstruction], None]
@@ -185,8 +188,10 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
         names = order.setdefault(idx, [])
         known = set(names)
         names += [rec.image(i).name for i in sorted(reg) if rec.image(i).name not in known]
+        first = not known and len(names) >= 2  # the model's first step: its initial pair
         step = GrowthStep(step=len(growth), model=idx, image=names[-1] if names else "", images=tuple(names),
-                          registered_images=len(reg), num_points3D=int(rec.num_points3D()))
+                          registered_images=len(reg), num_points3D=int(rec.num_points3D()),
+                          initial_pair=(names[0], names[1]) if first else None)
         growth.append(step.to_dict())
         if on_step is not None and not hook_errors:
             try:

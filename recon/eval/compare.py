@@ -141,14 +141,15 @@ def method_result(method: str, report: dict[str, Any] | None, peak: PeakRss, gt,
 
 
 def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: int, progress: bool = False,
-             strict: bool = True) -> dict[str, Any]:
+             strict: bool = True, workers: int = 0) -> dict[str, Any]:
     from recon.core.pipeline import RunConfig, run_scene
 
     report, err = None, None
     with PeakRss() as mem:
         try:
             rep = run_scene(scene_dir, RunConfig.from_options(out=out, overwrite=True, max_size=max_size, method=OURS,
-                                                              pairs=pairs, seed=seed, progress=progress))
+                                                              pairs=pairs, seed=seed, progress=progress,
+                                                              workers=workers))
             report = rep.to_dict()
         except (InputError, UserError) as e:
             if strict:
@@ -161,14 +162,14 @@ def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: in
 
 
 def run_stock_preset(scene_dir: Path, out: Path, gt, preset: str, max_size: int, pairs: str, seed: int,
-                     strict: bool = True) -> dict[str, Any]:
+                     strict: bool = True, workers: int = 0) -> dict[str, Any]:
     from recon.eval.stock import run_stock
 
     report, err = None, None
     with PeakRss() as mem:
         try:
             report = run_stock(scene_dir, out, preset=preset, pairs=pairs, max_size=max_size,  # type: ignore[arg-type]
-                               seed=seed).to_dict()
+                               seed=seed, workers=workers).to_dict()
         except (InputError, UserError) as e:
             if strict:
                 raise
@@ -275,7 +276,7 @@ def clouds_between(stock_row: dict[str, Any], ours_row: dict[str, Any], threshol
 def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets: Sequence[str] = ("default",),
                   max_size: int = DEFAULT_MAX_SIZE, pairs: str = "exhaustive", seed: int = 0, progress: bool = False,
                   threshold_rel: float = 0.01, strict: bool = True, log: Log = _nolog,
-                  on_warning: Log = _nolog) -> dict[str, Any]:
+                  on_warning: Log = _nolog, workers: int = 0) -> dict[str, Any]:
     """Run stock (each preset) and ours, evaluate, compare clouds, write OUT/compare.json.
 
     `strict`: InputError / UserError (unusable scene, bad options) propagate; otherwise they are
@@ -314,10 +315,10 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
     for preset in presets:
         d = out_dir / f"stock-{preset}"
         log(f"{scene_dir.name}: stock COLMAP SIFT ({preset}) -> {d}")
-        methods[f"stock-{preset}"] = run_stock_preset(scene_dir, d, gt, preset, max_size, pairs, seed, strict)
+        methods[f"stock-{preset}"] = run_stock_preset(scene_dir, d, gt, preset, max_size, pairs, seed, strict, workers)
     d = out_dir / OURS_KEY
     log(f"{scene_dir.name}: recon run ({OURS}) -> {d}")
-    methods[OURS_KEY] = run_ours(scene_dir, d, gt, max_size, pairs, seed, progress, strict)
+    methods[OURS_KEY] = run_ours(scene_dir, d, gt, max_size, pairs, seed, progress, strict, workers)
     for name, row in methods.items():
         if row.get("status") != "ok":
             warn(f"{name}: {row.get('status')}: {row.get('message') or 'no message'}")
@@ -479,7 +480,7 @@ def scenes_table(results: list[dict[str, Any]], max_size: int):
 def run_scenes(root: str | Path, out_root: str | Path, scenes: Sequence[str] | None = None,
                presets: Sequence[str] = ("default",), max_size: int = DEFAULT_MAX_SIZE, pairs: str = "exhaustive",
                seed: int = 0, progress: bool = False, json_path: str | Path | None = None,
-               log: Log = _nolog) -> list[dict[str, Any]]:
+               log: Log = _nolog, workers: int = 0) -> list[dict[str, Any]]:
     """`compare_scene` for each scene folder under `root` into OUT_ROOT/<scene>; the JSON file
     (when given) is rewritten atomically after every scene. UserError for an unknown scene."""
     root = Path(root).expanduser()
@@ -499,7 +500,7 @@ def run_scenes(root: str | Path, out_root: str | Path, scenes: Sequence[str] | N
     results: list[dict[str, Any]] = []
     for scene in wanted:
         res = compare_scene(root / scene, out_root / scene, presets=presets, max_size=max_size, pairs=pairs,
-                            seed=seed, progress=progress, strict=False, log=log,
+                            seed=seed, progress=progress, strict=False, log=log, workers=workers,
                             on_warning=lambda m, s=scene: log(f"{s}: warning: {m}"))
         results.append(res)
         if json_path is not None:

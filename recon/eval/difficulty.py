@@ -76,7 +76,8 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
 
 def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_azimuth_deg: float = DEFAULT_MAX_AZIMUTH,
                    presets: Sequence[str] = DEFAULT_PRESETS, seed: int = 0, image_size: tuple[int, int] | None = None,
-                   max_size: int = DEFAULT_MAX_SIZE, recompute: bool = False, log: Log = lambda _m: None) -> dict[str, Any]:
+                   max_size: int = DEFAULT_MAX_SIZE, recompute: bool = False, log: Log = lambda _m: None,
+                   workers: int = 0, progress: bool = False) -> dict[str, Any]:
     """Render and compare every sweep scene; returns {"config", "rows"} (also OUT/difficulty.json)."""
     from recon.errors import UserError
     from scenes.presets import get_preset
@@ -110,6 +111,7 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
                 log(f"{preset}: reusing {cj} (--recompute to run it again)")
         if res is None:
             res = compare_scene(scene, run_dir, presets=presets, max_size=max_size, seed=seed, strict=False,
+                                workers=workers, progress=progress,
                                 log=log, on_warning=lambda m, p=preset: log(f"{p}: warning: {m}"))
         rows += rows_of(res, n, step_deg(n, max_azimuth_deg))
         write_json_atomic(out / "difficulty.json", {"config": config, "rows": rows})

@@ -231,7 +231,7 @@ class StockMatch(_Always):
                 inl = inl[:, ::-1]
             inliers.append(inl)
             rows.append(PairRow(image0=a, image1=b, raw_matches=n_raw, merged_matches=n_raw,
-                                verified_inliers=int(n_in), config=conf))
+                                verified_inliers=int(n_in), two_view_config=conf))
         run.report.pairs = rows
         run.report.pairs_computed = len(rows)
         run.report.num_keypoints = nk

@@ -10,19 +10,27 @@ pipeline. Entity layout of a recording:
   COLMAP camera model and full-resolution parameters;
 * `world/points`: `Points3D` with colours, plus `reprojection_error` and `track_length`
   per point (`AnyValues`);
-* `pairs/<name0>__<name1>/matches` (both images side by side, inliers green, outliers red,
-  JPEG), `.../info` (Markdown), `.../coarse` (PNG heat map of the coarse score of every simulated
-  view: row = (tilt, scale), column = longitude index, chosen view(s) boxed in white) and
-  `.../coarse_scores` (the raw grid as a `Tensor`, NaN where no view was simulated);
+* `pairs/<name0>__<name1>/matches`: the pair view, in the pixels of a side-by-side picture
+  (image 0 left, image 1 right, each at most `PAIR_PX`): `.../matches/images` (the two images,
+  JPEG, no lines burnt in), `.../matches/inliers` and `.../matches/outliers` (`LineStrips2D`,
+  green and red, at most `MAX_STRIPS` each, a seeded sample; separate entities, so a user can
+  hide either and hover a line to see its index); `.../info` (Markdown, with the counts),
+  `.../coarse` (PNG heat map of the coarse score of every simulated view: rows = tilt (and
+  scale), columns = longitude index, labelled axes and a colour scale; the chosen view(s) boxed
+  in white) and `.../coarse_scores` (the raw grid as a `Tensor`, NaN where no view was simulated);
 * `growth/...` on the `registration` timeline (sequence = registration step, 0 = the initial
   pair): the model as incremental mapping builds it, for replay image by image:
   `growth/cameras/<image>` (pose and intrinsics of every image registered so far, re-logged
   each step because bundle adjustment moves them; the image just registered in orange),
   `growth/points` (at most `GROWTH_POINTS` points, evenly subsampled, uniform colour: COLMAP
   extracts point colours only at the end) and `growth/info` (Markdown: step, image, counts).
-  Only logged when the model is built in this run (a reused model has no replay);
-* `plots/pair/*`: raw matches, matcher inliers, COLMAP-verified inliers and seconds per pair on
-  the `pair` timeline; `plots/bars/verified_inliers` (`BarChart` over pair index);
+  When the model is reused from an earlier run (no live steps), the replay is rebuilt from
+  report.json's `sfm_growth` (the registration order) and the final model (`replay_steps`):
+  each step shows the images registered so far at their *final* poses and the points seen by
+  at least two of them (the intermediate bundle-adjusted poses of the first run are not kept);
+* `plots/pair/*`: raw matches, matcher inliers and COLMAP-verified inliers per pair on the `pair`
+  timeline; `plots/pair_seconds/seconds` (matching seconds per pair: its own plot, counts and
+  seconds do not share an axis); `plots/bars/verified_inliers` (`BarChart` over pair index);
   `plots/growth/registered_images` and `plots/growth/points3D` (`BarChart` over registration
   step, from the report so they exist for reused models too); `plots/model/points_per_image`
   (`BarChart`, registered images in image id order); `summary` (Markdown report headline numbers).
@@ -48,7 +56,6 @@ once when it exits (a machine without a display) instead of buffering the record
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import shutil
@@ -73,6 +80,8 @@ THUMB_PX = 320  # longest side of the camera images in the 3D view
 # recording's size is mostly these pictures (measured in docs/decisions.md, "Rerun recordings").
 PAIR_PX = 512
 JPEG_QUALITY = 80
+MAX_STRIPS = 80  # match lines per class (inliers, outliers) in the Rerun pair view: legible at viewer size
+STRIP_ALPHA = 170  # lines a little transparent, so the images show through a dense set
 GROWTH_POINTS = 20000  # points per step of the growth replay (keeps a 30-image recording small)
 GROWTH_NEW = (255, 140, 0)  # the camera just registered
 GROWTH_OLD = (150, 150, 150)  # cameras registered earlier
@@ -340,6 +349,72 @@ def heatmap_image(grid: NDArray[np.float32], chosen: list[tuple[int, int]], cell
     return cv2.cvtColor(big, cv2.COLOR_BGR2RGB)
 
 
+def heatmap_figure(grid: NDArray[np.float32], labels: list[str], chosen: list[tuple[int, int]],
+                   cell: int = 28) -> NDArray[np.uint8]:
+    """`heatmap_image` with axes: row labels (tilt t, and scale s when not 1) on the left, the
+    longitude index below, and a colour bar on the right from the lowest to the highest score.
+    RGB, white background."""
+    font, fs, th = cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1
+    cells = heatmap_image(grid, chosen, cell)
+    h, w = cells.shape[:2]
+    left = 12 + max([cv2.getTextSize(t, font, fs, th)[0][0] for t in labels] + [40])
+    top, bottom, bar_w, right = 26, 44, 16, 90
+    fig = np.full((top + h + bottom, left + w + 20 + bar_w + right, 3), 255, np.uint8)
+    fig[top:top + h, left:left + w] = cells
+    black = (0, 0, 0)
+    cv2.putText(fig, "coarse score per simulated view", (left, 18), font, fs, black, th, cv2.LINE_AA)
+    for r, t in enumerate(labels):
+        cv2.putText(fig, t, (4, top + r * cell + cell // 2 + 5), font, fs, black, th, cv2.LINE_AA)
+    ncol = grid.shape[1]
+    for c in range(ncol):
+        if ncol <= 12 or c % max(1, ncol // 8) == 0:
+            cv2.putText(fig, str(c), (left + c * cell + cell // 2 - 4, top + h + 16), font, fs, black, th, cv2.LINE_AA)
+    cv2.putText(fig, "longitude index (phi increasing) ->", (left, top + h + 36), font, fs, black, th, cv2.LINE_AA)
+    cv2.putText(fig, "tilt", (4, top - 8), font, fs, black, th, cv2.LINE_AA)
+    # colour bar: viridis from the lowest (bottom) to the highest (top) score
+    x0 = left + w + 20
+    ramp = np.linspace(255, 0, max(h, 2)).astype(np.uint8).reshape(-1, 1)
+    bar = cv2.cvtColor(cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS), cv2.COLOR_BGR2RGB)
+    fig[top:top + h, x0:x0 + bar_w] = np.repeat(bar, bar_w, axis=1)[:h]
+    valid = np.isfinite(grid)
+    lo, hi = (float(grid[valid].min()), float(grid[valid].max())) if valid.any() else (0.0, 0.0)
+    cv2.putText(fig, f"{hi:.3g}", (x0 + bar_w + 4, top + 10), font, fs, black, th, cv2.LINE_AA)
+    cv2.putText(fig, f"{lo:.3g}", (x0 + bar_w + 4, top + h), font, fs, black, th, cv2.LINE_AA)
+    cv2.putText(fig, "score", (x0 - 4, top + h + 16), font, fs, black, th, cv2.LINE_AA)
+    return fig
+
+
+def match_strips(result: PairResult, scale0: float, scale1: float, offset_x: float, max_lines: int = MAX_STRIPS,
+                 seed: int = 0) -> dict[str, tuple[NDArray[np.float32], NDArray[np.int64]]]:
+    """{"inliers": (strips (N, 2, 2), match indices), "outliers": ...}: each match as a line from
+    its keypoint in image 0 (scaled by `scale0`) to its keypoint in image 1 (scaled by `scale1`,
+    shifted right by `offset_x`), in the side-by-side picture's pixels; at most `max_lines` of
+    each class, a seeded sample. OpenCV keypoints (pixel centres at integers) are moved by +0.5
+    to Rerun's image coordinates (pixel centres at +0.5)."""
+    from recon.viz.vis import sample_matches
+
+    n = result.num_matches
+    inl = result.inlier_mask if result.inlier_mask is not None else np.ones(n, bool)
+    out = {}
+    for name, mask in (("inliers", inl), ("outliers", ~inl)):
+        idx = np.flatnonzero(mask[:n]) if n else np.zeros(0, np.int64)
+        idx = idx[sample_matches(len(idx), max_lines, seed)]
+        p0 = (result.kpts0[result.matches[idx, 0]].astype(np.float32) + 0.5) * np.float32(scale0)
+        p1 = (result.kpts1[result.matches[idx, 1]].astype(np.float32) + 0.5) * np.float32(scale1)
+        p1[:, 0] += np.float32(offset_x)
+        out[name] = (np.stack([p0, p1], axis=1).astype(np.float32).reshape(-1, 2, 2), idx.astype(np.int64))
+    return out
+
+
+def side_by_side(im0: NDArray[np.uint8], im1: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Image 0 left, image 1 right, top-aligned, black below the shorter one (BGR)."""
+    h = max(im0.shape[0], im1.shape[0])
+    canvas = np.zeros((h, im0.shape[1] + im1.shape[1], 3), np.uint8)
+    canvas[:im0.shape[0], :im0.shape[1]] = im0 if im0.ndim == 3 else cv2.cvtColor(im0, cv2.COLOR_GRAY2BGR)
+    canvas[:im1.shape[0], im0.shape[1]:] = im1 if im1.ndim == 3 else cv2.cvtColor(im1, cv2.COLOR_GRAY2BGR)
+    return canvas
+
+
 def pair_markdown(name0: str, name1: str, r: PairResult, cached: bool, verified: int | None = None) -> str:
     names = (name0, name1)
     lines = [f"## {name0} ↔ {name1}", "", "| | |", "|---|---|", f"| method | {r.method} |"]
@@ -397,8 +472,8 @@ def summary_markdown(report: Any) -> str:
         lines += [f"| {g['step']} | {g['model']} | {g['image']} | {g['registered_images']} | {g['num_points3D']} |"
                   for g in report.sfm_growth]
     if report.model_reused:
-        lines += ["", "_The model was reused from an earlier run: the growth replay (timeline "
-                      "`registration`) is only recorded when the model is built; use --overwrite._"]
+        lines += ["", "_The model was reused from an earlier run: its growth replay (timeline `registration`) "
+                      "is rebuilt from the registration order with the final poses._"]
     return "\n".join(lines) + "\n"
 
 
@@ -524,26 +599,20 @@ class RerunLogger(BaseRunObserver):
         rec.set_time("pair", sequence=i)
         t0, t1 = self._thumb(name0), self._thumb(name1)
         if t0 is not None and t1 is not None:
-            from recon.viz.vis import draw_matches
-
-            (im0, s0), (im1, s1) = t0, t1
-            small = dataclasses.replace(r, kpts0=(r.kpts0 * np.float32(s0)).astype(np.float32),
-                                        kpts1=(r.kpts1 * np.float32(s1)).astype(np.float32))
-            rec.log(f"{base}/matches", rr.EncodedImage(contents=_jpeg(draw_matches(im0, im1, small)),
-                                                      media_type="image/jpeg"), static=True)
+            log_pair_view(rec, f"{base}/matches", t0, t1, r)
         rec.log(f"{base}/info", rr.TextDocument(pair_markdown(name0, name1, r, cached),
                                                media_type=rr.MediaType.MARKDOWN), static=True)
         rec.log(base, rr.AnyValues(image0=name0, image1=name1, raw_matches=r.num_matches,
                                    inliers=r.num_inliers, cached=bool(cached)), static=True)
         if r.coarse_scores:
             grid, labels, chosen = coarse_grid(r)
-            rec.log(f"{base}/coarse", rr.EncodedImage(contents=_png(heatmap_image(grid, chosen)), media_type="image/png"),
-                    static=True)
+            rec.log(f"{base}/coarse", rr.EncodedImage(contents=_png(heatmap_figure(grid, labels, chosen)),
+                                                      media_type="image/png"), static=True)
             rec.log(f"{base}/coarse_scores", rr.Tensor(grid, dim_names=("tilt", "longitude")),
                     rr.AnyValues(rows=labels), static=True)
         rec.log("plots/pair/raw_matches", rr.Scalars(float(r.num_matches)))
         rec.log("plots/pair/inliers", rr.Scalars(float(r.num_inliers)))
-        rec.log("plots/pair/seconds", rr.Scalars(float(r.timings.get("total", 0.0))))
+        rec.log("plots/pair_seconds/seconds", rr.Scalars(float(r.timings.get("total", 0.0))))
 
     def on_sfm_step(self, step: Any, live: Any) -> None:
         """RunObserver.on_sfm_step: one frame of the growth replay (see module doc)."""
@@ -589,7 +658,7 @@ class RerunLogger(BaseRunObserver):
             rec.set_time("pair", sequence=i)
             rec.log("plots/pair/verified_inliers", rr.Scalars(float(p.verified_inliers)))
             rec.log(f"{pair_entity(p.image0, p.image1)}/verified", rr.AnyValues(verified_inliers=int(p.verified_inliers),
-                                                                              two_view_config=p.config))
+                                                                              two_view_config=p.two_view_config))
         rec.reset_time()
         if report.pairs:
             rec.log("plots/bars/verified_inliers", rr.BarChart(np.array([p.verified_inliers for p in report.pairs],
@@ -604,8 +673,44 @@ class RerunLogger(BaseRunObserver):
                     rr.BarChart(np.array([g["num_points3D"] for g in report.sfm_growth], np.float64)), static=True)
         if model is not None:
             self._log_reconstruction(rec, model)
+            if self._growth_model is None and report.sfm_growth:  # reused model: no live steps
+                self._replay_growth(rec, model, report.sfm_growth)
         rec.log("summary", rr.TextDocument(summary_markdown(report), media_type=rr.MediaType.MARKDOWN), static=True)
         rec.send_blueprint(self.blueprint(report), make_active=True, make_default=True)
+
+    def _replay_growth(self, rec: Any, model: Any, growth: list[dict[str, Any]]) -> None:
+        """The growth replay of a reused model, rebuilt from `sfm_growth` (see module doc)."""
+        import rerun as rr
+
+        steps = replay_steps(model, growth)
+        if not steps:
+            return
+        ids = {model.image(i).name: int(i) for i in model.reg_image_ids()}
+        pts = model.points3D
+        xyz = np.array([p.xyz for p in pts.values()], np.float64).reshape(-1, 3)
+        obs_point = np.concatenate([np.full(p.track.length(), k, np.int64) for k, p in enumerate(pts.values())]
+                                   or [np.zeros(0, np.int64)])
+        obs_image = np.concatenate([np.array([e.image_id for e in p.track.elements], np.int64) for p in pts.values()]
+                                   or [np.zeros(0, np.int64)])
+        rec.reset_time()
+        for n, (step, names, image) in enumerate(steps):
+            rec.set_time("registration", sequence=int(step))
+            if n == 0:
+                rec.log("growth", rr.Clear(recursive=True))
+            for name in names:
+                self._log_camera(rec, f"growth/cameras/{_esc(name)}", model.image(ids[name]), with_image=False,
+                                 static=False, color=GROWTH_NEW if name == image or n == 0 else GROWTH_OLD)
+            seen = np.bincount(obs_point[np.isin(obs_image, [ids[m] for m in names])], minlength=len(xyz))
+            sel = np.flatnonzero(seen >= 2)
+            if len(sel) > GROWTH_POINTS:
+                sel = sel[np.linspace(0, len(sel) - 1, GROWTH_POINTS).round().astype(int)]
+            rec.log("growth/points", rr.Points3D(xyz[sel], colors=GROWTH_PTS, radii=rr.Radius.ui_points(2.0)))
+            rec.log("growth/info", rr.TextDocument(
+                f"**step {step}**: registered **{image}**\n\n{len(names)} images, {len(sel)} points seen by two "
+                f"of them\n\norder: {', '.join(names)}\n\n_rebuilt from report.json (final poses)_",
+                media_type=rr.MediaType.MARKDOWN))
+        rec.reset_time()
+        self._growth_model = -1
 
     def _log_camera(self, rec: Any, ent: str, img: Any, *, with_image: bool, static: bool,
                     color: tuple[int, int, int] | None = None) -> None:
@@ -667,12 +772,13 @@ class RerunLogger(BaseRunObserver):
             base = pair_entity(*best)
             tabs.append(rrb.Horizontal(
                 rrb.Spatial2DView(name=f"pair {best[0]} / {best[1]}", origin=f"{base}/matches"),
-                rrb.Vertical(rrb.Spatial2DView(name="coarse scores (tilt × longitude)", origin=f"{base}/coarse"),
+                rrb.Vertical(rrb.Spatial2DView(name="coarse scores (tilt x longitude)", origin=f"{base}/coarse"),
                              rrb.TextDocumentView(name="pair info", origin=f"{base}/info")),
                 column_shares=[3, 2], name="pair"))
         tabs.append(rrb.TextDocumentView(name="summary", origin="summary"))
         plots = rrb.Tabs(
-            rrb.TimeSeriesView(name="per pair", origin="plots/pair"),
+            rrb.TimeSeriesView(name="matches per pair", origin="plots/pair"),
+            rrb.TimeSeriesView(name="seconds per pair", origin="plots/pair_seconds"),
             rrb.BarChartView(name="verified inliers per pair", origin="plots/bars/verified_inliers"),
             rrb.Horizontal(rrb.BarChartView(name="registered images per step", origin="plots/growth/registered_images"),
                            rrb.BarChartView(name="3D points per step", origin="plots/growth/points3D"),
@@ -690,6 +796,52 @@ class RerunLogger(BaseRunObserver):
             collapse_panels=False)
 
 
+def log_pair_view(rec: Any, ent: str, thumb0: tuple[NDArray[np.uint8], float],
+                  thumb1: tuple[NDArray[np.uint8], float], r: PairResult) -> None:
+    """The pair view under `ent` (see module doc): the two images side by side, then inliers and
+    outliers as line strips over them (drawn above the images, inliers above outliers)."""
+    import rerun as rr
+
+    (im0, s0), (im1, s1) = thumb0, thumb1
+    rec.log(f"{ent}/images", rr.EncodedImage(contents=_jpeg(side_by_side(im0, im1)), media_type="image/jpeg",
+                                             draw_order=-10.0), static=True)
+    from recon.viz.vis import INLIER_BGR, OUTLIER_BGR
+
+    strips = match_strips(r, s0, s1, float(im0.shape[1]))
+    for (name, (lines, idx)), bgr, order in zip(strips.items(), (INLIER_BGR, OUTLIER_BGR), (30.0, 25.0)):
+        rec.log(f"{ent}/{name}", rr.LineStrips2D(lines, colors=(*bgr[::-1], STRIP_ALPHA),
+                                                 radii=rr.Radius.ui_points(0.75),
+                                                 labels=[f"match {i}" for i in idx], show_labels=False,
+                                                 draw_order=order), static=True)
+
+
+def replay_steps(model: Any, growth: list[dict[str, Any]]) -> list[tuple[int, list[str], str]]:
+    """[(step, images registered so far, image just registered)] of the growth rows of `model`
+    (the kept model: the rows' model index whose images it holds most of), images no longer in
+    the model dropped. The first row's two images come from its `initial_pair` (report schema 2);
+    a version-1 row names only the second, and the first is the one image of the model that no
+    row names."""
+    in_model = {model.image(i).name for i in model.reg_image_ids()}
+    by_model: dict[int, list[dict[str, Any]]] = {}
+    for g in growth:
+        by_model.setdefault(int(g["model"]), []).append(g)
+    if not by_model:
+        return []
+    rows = max(by_model.values(), key=lambda rs: (sum(g["image"] in in_model for g in rs), len(rs)))
+    first = rows[0]
+    pair = first.get("initial_pair")
+    if pair:
+        order = [n for n in pair if n != first["image"]] + [first["image"]]
+    else:
+        named = {g["image"] for g in rows}
+        order = sorted(in_model - named)[:1] + [first["image"]]
+    steps = [(int(first["step"]), [n for n in order if n in in_model], first["image"])]
+    for g in rows[1:]:
+        order.append(g["image"])
+        steps.append((int(g["step"]), [n for n in order if n in in_model], g["image"]))
+    return steps
+
+
 def log_single_pair(sink: Sink, path0: Path, path1: Path, result: PairResult) -> Path | None:
     """`recon match --rerun ...`: one pair's diagnostics; returns the saved file (save sink)."""
     import rerun.blueprint as rrb
@@ -704,7 +856,7 @@ def log_single_pair(sink: Sink, path0: Path, path1: Path, result: PairResult) ->
         if logger.rec is not None:
             base = pair_entity(n0, n1)
             logger.rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
-                rrb.Spatial2DView(name="matches", origin=f"{base}/matches"),
+                rrb.Spatial2DView(name="matches (toggle inliers / outliers in the panel)", origin=f"{base}/matches"),
                 rrb.Vertical(rrb.Spatial2DView(name="coarse scores", origin=f"{base}/coarse"),
                              rrb.TextDocumentView(name="info", origin=f"{base}/info")),
                 column_shares=[3, 2])), make_active=True, make_default=True)

@@ -1,12 +1,14 @@
 """Stage `database`: cameras, images, merged keypoints and raw matches in a COLMAP database.
 
-Needs: `scene`, `pairs`, `merged`, `keypoints`. Makes: `image_ids` (COLMAP's id per image
+Needs: `scene`, `store`, `pairs`, `merged`, `keypoints`. Makes: `image_ids` (COLMAP's id per image
 name) and `num_keypoints`. Writes `OUT/cache/matches.db` (through `matches.db.tmp` and a
 rename): cameras from EXIF (`database.camera_mode`), images, keypoints (+0.5 for COLMAP's pixel
-centres) and *all* the matcher's matches, before verification (the verify stage works on a
-copy). See `recon.core.database`.
+centres), for the SIFT-based methods SIFT descriptors of the original photos at those keypoints
+(`recon.core.descriptors`: what COLMAP's own matchers need to add photos later) and *all* the
+matcher's matches, before verification (the verify stage works on a copy). See
+`recon.core.database`.
 
-Key: the camera mode, every image's name and pixel digest, the merged keypoints, the pairs and
+Key: the camera mode and model, every image's name and pixel digest, the merged keypoints, the pairs and
 their merged matches. Reused when unchanged and `matches.db` exists (the image ids, the camera
 mode used and the images COLMAP could not read come back from the state record).
 """
@@ -18,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from recon.core.context import Run
-from recon.core.database import database_is_sound, import_scene_images, write_keypoints_and_matches
+from recon.core.database import CAMERA_MODELS, database_is_sound, import_scene_images, write_keypoints_and_matches
 from recon.core.state import fingerprint
 
 SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
@@ -39,9 +41,35 @@ def replace_db(tmp: Path, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def with_descriptors(run: Run) -> bool:
+    """Whether this run's matcher is SIFT-based, so its database gets SIFT descriptors."""
+    from recon.core.descriptors import SIFT_METHODS
+
+    return (run.report.method or run.cfg.match.method) in SIFT_METHODS
+
+
+def write_sift_descriptors(run: Run, db_path: Path, ids: dict[str, int]) -> None:
+    """SIFT descriptors of the original photos at each image's keypoints, one row per keypoint
+    (`recon.core.descriptors`), as COLMAP's SIFT descriptors."""
+    import pycolmap
+
+    from recon.core.descriptors import sift_descriptors
+
+    d = run.data
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        with pycolmap.DatabaseTransaction(db):
+            for name, iid in ids.items():
+                im = d.scene.image(name)
+                desc, _ = sift_descriptors(d.store.image(name), d.keypoints[name], im.scale_xy)
+                db.write_descriptors(iid, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, desc))
+    finally:
+        db.close()
+
+
 class Database:
     name = "database"
-    needs = ("scene", "pairs", "merged", "keypoints")
+    needs = ("scene", "store", "pairs", "merged", "keypoints")
     makes = ("image_ids", "num_keypoints")
 
     @staticmethod
@@ -50,7 +78,9 @@ class Database:
 
     def key(self, run: Run) -> str | None:
         d = run.data
-        return fingerprint("database", run.cfg.database.camera_mode,
+        model = run.cfg.database.camera_model  # in the key only when not the default: older caches stay valid
+        extra = ([model] if model != CAMERA_MODELS[0] else []) + (["sift-descriptors-1"] if with_descriptors(run) else [])
+        return fingerprint("database", run.cfg.database.camera_mode, *extra,
                            [(im.name, im.digest) for im in d.scene.images],
                            *[d.keypoints[n] for n in d.scene.names], d.pairs, *d.merged.matches)
 
@@ -66,8 +96,11 @@ class Database:
         tmp = path.with_name(path.name + ".tmp")
         advance = run.bar(len(d.scene.names) + len(d.pairs))
         try:
-            ids, used, missing = import_scene_images(tmp, run.image_dir, d.scene.names, run.cfg.database.camera_mode)
+            ids, used, missing = import_scene_images(tmp, run.image_dir, d.scene.names, run.cfg.database.camera_mode,
+                                                     run.cfg.database.camera_model)
             write_keypoints_and_matches(tmp, ids, d.keypoints, d.pairs, d.merged.matches, on_item=lambda: advance())
+            if with_descriptors(run):
+                write_sift_descriptors(run, tmp, ids)
         except BaseException:
             remove_db(tmp)
             raise
