@@ -28,15 +28,13 @@ scene once. These folders are shared: a test that changes files in them must cop
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from pathlib import Path
 
 import cv2  # noqa: F401  (first: importing pycolmap before cv2 made cv2.imwrite(PNG) crash, double free in zlib)
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("RECON_SHARED_DATA") or REPO.parent / "shared" / "data")
+from shared_paths import REPO, SHARED_DATA  # noqa: E402, F401  (re-exported for fixtures)
 SHARED_FIXTURES = ("shared_data", "graf_dir", "evd_dir", "scene_dir")
 SMALL = (480, 360)  # image size (px) of the small rendered scenes: seconds per run, not minutes
 

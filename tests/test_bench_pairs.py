@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA as DATA
+from shared_paths import SHARED_DATA as DATA
 from matching.memory import PeakRss
 from recon.eval.bench_pairs import discover_pairs, ratio_line, summarize, write_json
 

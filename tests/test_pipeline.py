@@ -20,7 +20,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from conftest import SHARED_DATA as DATA
+from shared_paths import SHARED_DATA as DATA
 from recon.cli import main
 from recon.core.observer import BaseRunObserver
 from recon.core.pipeline import RunConfig, run_scene

@@ -172,7 +172,7 @@ def test_a_stale_recording_is_renamed_or_deleted(tmp_path, capsys):
 
 
 def test_view_without_a_display_hints_at_web(tmp_path, monkeypatch, capsys):
-    (tmp_path / "recording.rrd").write_bytes(b"")
+    (tmp_path / "recording.rrd").write_bytes(b"RRF2" + bytes(60))  # a recording by its first bytes
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     monkeypatch.setattr(sys, "platform", "linux")

@@ -11,7 +11,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from conftest import SHARED_DATA as DATA
+from shared_paths import SHARED_DATA as DATA
 from recon.eval.evaluate import evaluate_model
 from recon.eval.gt import find_gt
 from recon.eval.stock import run_stock
