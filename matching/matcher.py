@@ -79,11 +79,11 @@ class ExtraAffineMatcher:
             escalation = best.label
         result = ctx.to_result(best, reason_for(decision, best.reference), decision.f0, decision.f1)
         result.escalation = escalation
-        result.path, result.path_reason = path, path_reason
         with ctx.timed("ransac"):
             for step in FINISHING:
                 if step.applies(ctx, best, result):
                     result = step.run(ctx, best, result)
+        result.path, result.path_reason = path, path_reason
         ctx.timings["total"] = time.perf_counter() - t_start
         result.timings = ctx.timings
         return self.enough_or_empty(result)
