@@ -163,3 +163,46 @@ def test_graf_easy_pair_takes_originals_and_graf_1_5_the_simulated_path(shared_d
         if k > 2:
             assert r.best_view is not None and r.best_view.t > 1.0
     m.close()
+
+
+# --- every image's views computed once per run -------------------------------------------------------
+class CountingStore(FeatureStore):
+    """A FeatureStore that counts how often each (image, key) entry is computed."""
+
+    def __init__(self):
+        super().__init__()
+        self.computed: dict[tuple[str, str], int] = {}
+
+    def get_or_compute(self, name, key, compute, persist=True):
+        def counted():
+            self.computed[(name, key)] = self.computed.get((name, key), 0) + 1
+            return compute()
+        return super().get_or_compute(name, key, counted, persist)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_each_images_views_are_computed_once_and_shared_by_its_pairs(corner_wide_scene, adaptive):
+    names = [p.name for p in sorted((corner_wide_scene / "images").glob("*.png"))]
+    assert len(names) == 4
+    store = CountingStore()
+    for n in names:
+        store.add_image(n, load_gray(corner_wide_scene / "images" / n))
+    m = ExtraAffineMatcher(replace(MatcherConfig.multiview(), adaptive=adaptive))
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    for a, b in pairs:
+        m.match(store, a, b)
+    assert store.computed and max(store.computed.values()) == 1  # no entry computed twice
+    first_misses = store.misses
+    assert first_misses == len(store.computed)
+    # per image: at most the 43 distinct ORB views + the coarse target + the SIFT views; far fewer
+    # than one set per pair (each image is in 3 pairs)
+    grid = len(view_grid(MatcherConfig().grid))
+    for n in names:
+        orb = [k for (img, k) in store.computed if img == n and k.startswith("orb")]
+        assert len(orb) <= grid - 2 + 1
+    assert store.hits > 0  # later pairs read what earlier pairs computed
+    for a, b in pairs:  # the same pairs again: everything is served from the store
+        m.match(store, a, b)
+    assert store.misses == first_misses
+    m.close()
