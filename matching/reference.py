@@ -143,9 +143,14 @@ def choose_reference(feat0: Features, feat1: Features, cfg: ReferenceConfig = Re
     back = {int(q): int(t) for q, t in m10}
     mutual = np.array([back.get(int(t), -1) == int(q) for q, t in m01], bool) if len(m01) else np.zeros(0, bool)
     m = m01[mutual]
-    if len(m) < max(cfg.min_inliers, 4):
-        return ReferenceDecision(None, f0, f1, f"undecided: only {len(m)} mutual SIFT matches between the originals")
     p0, p1 = feat0.kpts[m[:, 0]], feat1.kpts[m[:, 1]]
+    if len(m) < max(cfg.min_inliers, 4):
+        why = f"undecided: only {len(m)} mutual SIFT matches between the originals"
+        if len(m) < 8:
+            return ReferenceDecision(None, f0, f1, why)
+        # too few to decide, but the homography is kept as evidence for the adaptive paths
+        H, inl = ransac_homography(p0, p1, cfg.ransac_px, seed=seed)
+        return ReferenceDecision(None, f0, f1, why, int(inl.sum()), H_1_from_0=H, inliers0=p0[inl])
     H, inl = ransac_homography(p0, p1, cfg.ransac_px, seed=seed)
     n_in = int(inl.sum())
     if H is None or n_in < cfg.min_inliers:
