@@ -206,3 +206,19 @@ def test_each_images_views_are_computed_once_and_shared_by_its_pairs(corner_wide
         m.match(store, a, b)
     assert store.misses == first_misses
     m.close()
+
+
+def test_path_reaches_the_rerun_text_and_the_pair_cache(tmp_path):
+    from matching.types import PairResult
+    from recon.core.paircache import load_pair_result, save_pair_result
+    from recon.viz.rerun_log import pair_markdown
+
+    r = PairResult.empty("extra-affine", "", path="originals",
+                         path_reason="412 original inliers over 63 % of the image, tilt 1.20 -> originals")
+    assert "| path | originals (412 original inliers over 63 % of the image, tilt 1.20 -> originals) |" in \
+        pair_markdown("a.jpg", "b.jpg", r, cached=False)
+    save_pair_result(tmp_path / "p.npz", r)
+    back = load_pair_result(tmp_path / "p.npz")
+    assert back is not None and (back.path, back.path_reason) == (r.path, r.path_reason)
+    sw = r.swapped()
+    assert (sw.path, sw.path_reason) == (r.path, r.path_reason)
