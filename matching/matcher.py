@@ -15,14 +15,27 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from .config import MatcherConfig
 from .adaptive import estimate_viewpoint, nearest_views, plan_pair
+from .config import MatcherConfig
 from .context import Attempt, MatchContext
 from .escalation import should_escalate
 from .geometry import scale_1_from_0
-from .reference import ReferenceDecision, choose_reference, larger_image, reason_for, settle_reference
+from .reference import (
+    ReferenceDecision,
+    choose_reference,
+    larger_image,
+    reason_for,
+    settle_reference,
+)
 from .store import FeatureStore
-from .strategies import ESCALATION, FINISHING, escalate, fast_path, originals_attempt, targeted_attempt
+from .strategies import (
+    ESCALATION,
+    FINISHING,
+    escalate,
+    fast_path,
+    originals_attempt,
+    targeted_attempt,
+)
 from .types import PairResult
 from .viewfeatures import original_features
 from .views import view_grid

@@ -21,13 +21,13 @@ from matching.adaptive import (
     tilt_and_longitude,
 )
 from matching.config import MatcherConfig
+from matching.escalation import should_escalate
 from matching.io import load_gray, read_homography
 from matching.matcher import ExtraAffineMatcher, decide_reference
 from matching.metrics import precision
 from matching.reference import reason_for, settle_reference
 from matching.store import FeatureStore
 from matching.strategies import ESCALATION, FINISHING, escalate, fast_path
-from matching.escalation import should_escalate
 from matching.types import ViewParams
 from matching.views import linear_part, view_grid
 
