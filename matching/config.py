@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields, replace
 from functools import cache
 from typing import Any, Literal
 
+from .adaptive import AdaptiveConfig
 from .coarse import CoarseConfig
 from .escalation import EscalationConfig
 from .fine import FineConfig
@@ -42,6 +43,12 @@ class MatcherConfig:
     """The SIFT fine stage on the best views (§III-C)."""
     escalation: EscalationConfig = field(default_factory=EscalationConfig)
     """What a pair the fast path leaves unverified tries next."""
+    adaptive: bool = True
+    """Decide per pair how much simulation it needs from the originals' SIFT geometry
+    (`matching.adaptive`: `originals`, `targeted` or `full` path, cheapest first, falling through
+    when a path verifies too little). False runs the full coarse grid on every pair, as the paper."""
+    paths: AdaptiveConfig = field(default_factory=AdaptiveConfig)
+    """Thresholds of the adaptive path decision (used with `adaptive`)."""
     fine_top_k: int = 2
     """How many of the best coarse views the fine stage fuses (paper: 1); two views give more
     correct matches at equal precision (docs/decisions.md)."""
@@ -94,7 +101,7 @@ class MatcherConfig:
         return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
                              coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0),
                              fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
-                             escalation=EscalationConfig(enabled=False))
+                             escalation=EscalationConfig(enabled=False), adaptive=False)
 
     @staticmethod
     def multiview() -> MatcherConfig:

@@ -61,6 +61,8 @@ class MatchContext:
     timings: dict[str, float] = field(default_factory=dict)
     coarse: dict[int, list[CoarseScore]] = field(default_factory=dict)
     reference: int = 0
+    targeted_coarse_inliers: int = 0  # the most ORB inliers of the adaptive targeted search, if it ran
+    fallen_through: Attempt | None = None  # the best adaptive attempt that verified too little
 
     def size(self, i: int) -> tuple[int, int]:
         """(width, height) of image `i` (0 or 1)."""
@@ -76,7 +78,8 @@ class MatchContext:
 
     def coarse_inliers(self) -> int:
         """The most ORB RANSAC inliers of any coarse view searched so far (evidence of overlap)."""
-        return max((c.inliers for scores in self.coarse.values() for c in scores), default=0)
+        full = max((c.inliers for scores in self.coarse.values() for c in scores), default=0)
+        return max(full, self.targeted_coarse_inliers)
 
     def map(self, fn: Callable[[T], R], items: Sequence[T], min_items: int = 1) -> list[R]:
         """[fn(x) for x in items], on the pool when there is one and at least `min_items` items."""

@@ -9,17 +9,33 @@ solved. `MatcherConfig` (`matching.config`) is re-exported here.
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+from .adaptive import estimate_viewpoint, nearest_views, plan_pair
 from .config import MatcherConfig
-from .context import MatchContext
+from .context import Attempt, MatchContext
 from .escalation import should_escalate
-from .reference import ReferenceDecision, choose_reference, reason_for, settle_reference
+from .geometry import scale_1_from_0
+from .reference import (
+    ReferenceDecision,
+    choose_reference,
+    larger_image,
+    reason_for,
+    settle_reference,
+)
 from .store import FeatureStore
-from .strategies import ESCALATION, FINISHING, escalate, fast_path
+from .strategies import (
+    ESCALATION,
+    FINISHING,
+    escalate,
+    fast_path,
+    originals_attempt,
+    targeted_attempt,
+)
 from .types import PairResult
 from .viewfeatures import original_features
 from .views import view_grid
@@ -59,11 +75,16 @@ class ExtraAffineMatcher:
         ctx = self.context(store, name0, name1)
         with ctx.timed("reference"):
             decision = decide_reference(ctx)
-        with ctx.timed("coarse"):
-            ctx.reference = settle_reference(decision, ctx.coarse_for, ctx.size(0), cfg.reference,
-                                             cfg.coarse.accept_inliers)
-        with ctx.timed("fine"):
-            best = fast_path(ctx)
+        path, path_reason = "full", "adaptive off -> full grid"
+        best: Attempt | None = None
+        if cfg.adaptive:
+            best, path, path_reason = adaptive_paths(ctx, decision)
+        if best is None:
+            with ctx.timed("coarse"):
+                ctx.reference = settle_reference(decision, ctx.coarse_for, ctx.size(0), cfg.reference,
+                                                 cfg.coarse.accept_inliers)
+            with ctx.timed("fine"):
+                best = max_verified(ctx.fallen_through, fast_path(ctx))
         escalation = ""
         if should_escalate(cfg.escalation, best.verified, ctx.coarse_inliers()):
             with ctx.timed("escalation"):
@@ -75,6 +96,7 @@ class ExtraAffineMatcher:
             for step in FINISHING:
                 if step.applies(ctx, best, result):
                     result = step.run(ctx, best, result)
+        result.path, result.path_reason = path, path_reason
         ctx.timings["total"] = time.perf_counter() - t_start
         result.timings = ctx.timings
         return self.enough_or_empty(result)
@@ -90,7 +112,8 @@ class ExtraAffineMatcher:
         return PairResult.empty(self.name, why, reference=result.reference,
                                 reference_reason=result.reference_reason, f0=result.f0, f1=result.f1,
                                 best_views=result.best_views, coarse_scores=result.coarse_scores,
-                                escalation=result.escalation, timings=result.timings, image_sizes=result.image_sizes)
+                                escalation=result.escalation, timings=result.timings, image_sizes=result.image_sizes,
+                                path=result.path, path_reason=result.path_reason)
 
     def close(self) -> None:
         if self._pool_obj is not None:
@@ -104,3 +127,53 @@ def decide_reference(ctx: MatchContext) -> ReferenceDecision:
     sift = ctx.cfg.fine.detector
     feats = ctx.map(lambda n: original_features(ctx.store, n, sift), list(ctx.names))
     return choose_reference(feats[0], feats[1], ctx.cfg.reference, ctx.size(0), ctx.cfg.seed)
+
+
+def max_verified(a: Attempt | None, b: Attempt) -> Attempt:
+    """The attempt with more verified matches (`a` on ties), `b` when there is no `a`."""
+    return b if a is None or b.verified > a.verified else a
+
+
+def adaptive_paths(ctx: MatchContext, decision: ReferenceDecision) -> tuple[Attempt | None, str, str]:
+    """The adaptive paths (`matching.adaptive`), cheapest first: (the accepted attempt or None
+    when the full path must run, the path taken, why). An attempt that verifies fewer than
+    `escalation.min_inliers` matches falls through to the next path; the best one so far is
+    kept on `ctx.fallen_through` so the full path only replaces it when it does better."""
+    cfg = ctx.cfg
+    enough = cfg.escalation.min_inliers
+    estimate = None
+    ref = decision.reference
+    if (ref is None and decision.H_1_from_0 is not None and decision.inliers0 is not None
+            and decision.inliers >= cfg.paths.targeted_min_inliers):
+        # too few inliers to settle the reference as such, enough for a targeted try: its scale decides
+        scale = scale_1_from_0(decision.H_1_from_0, ctx.size(0))
+        larger = larger_image(scale, cfg.reference.scale_tolerance) if math.isfinite(scale) else None
+        ref = 0 if larger is None else larger
+    if ref is not None and decision.H_1_from_0 is not None and decision.inliers0 is not None:
+        estimate = estimate_viewpoint(decision.H_1_from_0, decision.inliers0, ref, ctx.size(ref))
+    plan = plan_pair(estimate, cfg.paths, decision.reason if ref is None else "")
+    reason = plan.reason
+    if plan.path == "originals" and ref is not None:
+        ctx.reference = ref
+        with ctx.timed("originals"):
+            att = ctx.fallen_through = originals_attempt(ctx, ref)
+        if att.verified >= enough:
+            return att, "originals", reason
+        reason += f"; originals verified {att.verified} (< {enough})"
+    e = plan.estimate
+    if (ref is not None and e is not None and plan.path != "full"
+            and math.isfinite(e.tilt) and e.tilt <= cfg.paths.targeted_max_tilt):
+        ctx.reference = ref
+        views = nearest_views(ctx.views, e.tilt, e.phi, cfg.paths.targeted_views)
+        with ctx.timed("targeted"):
+            att = targeted_attempt(ctx, ref, views)
+        ctx.fallen_through = max_verified(ctx.fallen_through, att)
+        if att.verified >= enough:
+            if decision.reference is None:
+                decision.reference = ref
+                decision.reason += f"; the originals' homography makes image {ref} the reference"
+            return att, "targeted", (reason if plan.path == "targeted" else reason + " -> views near it")
+        reason += f"; targeted views verified {att.verified} (< {enough})"
+    if plan.path != "full":
+        reason += " -> full grid"
+    return None, "full", reason

@@ -74,6 +74,8 @@ class ReferenceDecision:
     reason: str
     inliers: int = 0
     scale_1_from_0: float | None = None  # linear scale factor image 0 -> image 1 (robust mode)
+    H_1_from_0: NDArray[np.float64] | None = None  # the originals' RANSAC homography (robust mode)
+    inliers0: NDArray[np.float32] | None = None  # its inliers' points in image 0, px (robust mode)
 
 
 def larger_image(scale_1_from_0: float, tolerance: float) -> int | None:
@@ -141,22 +143,28 @@ def choose_reference(feat0: Features, feat1: Features, cfg: ReferenceConfig = Re
     back = {int(q): int(t) for q, t in m10}
     mutual = np.array([back.get(int(t), -1) == int(q) for q, t in m01], bool) if len(m01) else np.zeros(0, bool)
     m = m01[mutual]
-    if len(m) < max(cfg.min_inliers, 4):
-        return ReferenceDecision(None, f0, f1, f"undecided: only {len(m)} mutual SIFT matches between the originals")
     p0, p1 = feat0.kpts[m[:, 0]], feat1.kpts[m[:, 1]]
+    if len(m) < max(cfg.min_inliers, 4):
+        why = f"undecided: only {len(m)} mutual SIFT matches between the originals"
+        if len(m) < 8:
+            return ReferenceDecision(None, f0, f1, why)
+        # too few to decide, but the homography is kept as evidence for the adaptive paths
+        H, inl = ransac_homography(p0, p1, cfg.ransac_px, seed=seed)
+        return ReferenceDecision(None, f0, f1, why, int(inl.sum()), H_1_from_0=H, inliers0=p0[inl])
     H, inl = ransac_homography(p0, p1, cfg.ransac_px, seed=seed)
     n_in = int(inl.sum())
     if H is None or n_in < cfg.min_inliers:
-        return ReferenceDecision(None, f0, f1, f"undecided: {n_in} RANSAC inliers between the originals", n_in)
+        return ReferenceDecision(None, f0, f1, f"undecided: {n_in} RANSAC inliers between the originals", n_in,
+                                 H_1_from_0=H, inliers0=p0[inl])
     scale = scale_1_from_0(H, image0_size) if image0_size is not None else math.nan
     if not math.isfinite(scale):  # no image size (or no scale at the centre): median over inlier segments
         scale = math.exp(median_log_scale(p0[inl], p1[inl], cfg.max_segments, seed))
     larger = larger_image(scale, cfg.scale_tolerance)
     if larger is None:
         why = f"scales equal within {cfg.scale_tolerance:.2f}x (0->1 scale {scale:.2f}, {n_in} inliers)"
-        return ReferenceDecision(0, f0, f1, why, n_in, scale)
+        return ReferenceDecision(0, f0, f1, why, n_in, scale, H, p0[inl])
     why = f"image {larger} is {max(scale, 1 / scale):.2f}x larger ({n_in} inliers)"
-    return ReferenceDecision(larger, f0, f1, why, n_in, scale)
+    return ReferenceDecision(larger, f0, f1, why, n_in, scale, H, p0[inl])
 
 
 def settle_reference(decision: ReferenceDecision, coarse_for: Callable[[int], list[CoarseScore]],

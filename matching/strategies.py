@@ -18,14 +18,14 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from .coarse import rank_views
+from .coarse import coarse_search, rank_views
 from .context import Attempt, MatchContext
 from .fine import fine_match, select_fine_views
 from .guided import guided_epipolar_round, guided_homography_round
 from .matching_utils import ransac_homography
 from .reference import reference_from_final_homography
 from .twosided import two_sided_attempt
-from .types import PairResult
+from .types import PairResult, ViewParams
 from .viewpairs import view_pair_attempt
 
 
@@ -38,6 +38,28 @@ def fine_attempt(ctx: MatchContext, ref: int, top_k: int, label: str) -> Attempt
     fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.fine, ctx.pool, cfg.seed)
     n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
     return Attempt(label=label, reference=ref, fine=fm, views=views, coarse=scores, verified=n_verified)
+
+
+def originals_attempt(ctx: MatchContext, ref: int) -> Attempt:
+    """The adaptive `originals` path (`matching.adaptive`): the unwarped originals' SIFT, image
+    `ref` as the reference, no coarse search and no simulated view."""
+    cfg = ctx.cfg
+    views = [ViewParams(1.0, 0.0, 1.0)]
+    fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.fine, ctx.pool, cfg.seed)
+    n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
+    return Attempt(label="", reference=ref, fine=fm, views=views, coarse=[], verified=n_verified)
+
+
+def targeted_attempt(ctx: MatchContext, ref: int, views: list[ViewParams]) -> Attempt:
+    """The adaptive `targeted` path: the coarse search on only `views` (the grid views near the
+    estimated tilt, `adaptive.nearest_views`), the fine stage on the best `fine_top_k` of them."""
+    cfg = ctx.cfg
+    scores = coarse_search(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.coarse, ctx.pool, cfg.seed)
+    ctx.targeted_coarse_inliers = max((c.inliers for c in scores), default=0)
+    fine_views = select_fine_views(rank_views(scores), cfg.fine_top_k, cfg.fine_include_original)
+    fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], fine_views, cfg.fine, ctx.pool, cfg.seed)
+    n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
+    return Attempt(label="", reference=ref, fine=fm, views=fine_views, coarse=scores, verified=n_verified)
 
 
 def fast_path(ctx: MatchContext) -> Attempt:

@@ -27,7 +27,9 @@ def _store(shared_data, *names):
 
 def test_graf_1_4_precision_above_90_percent(shared_data):
     store = _store(shared_data, "img1", "img4")
-    result = get_matcher("extra-affine").match(store, "img1", "img4")
+    # the full grid on every pair (the adaptive paths send graf 1-4 to the views near its
+    # estimated tilt: tests/test_adaptive.py)
+    result = get_matcher("extra-affine", adaptive=False).match(store, "img1", "img4")
     rep = precision(result, read_homography(shared_data / "oxford" / "graf" / "H1to4p"))
     assert rep.points >= 400
     assert rep.precision >= 0.90

@@ -32,7 +32,8 @@ def summarize(result: PairResult, names: tuple[str, str], gt=None, th: float = D
         "best_views": [{"t": v.t, "phi": v.phi, "s": v.s} for v in result.best_views],
         "coarse_scores": [{"t": c.view.t, "phi": c.view.phi, "s": c.view.s, "matches": c.matches,
                            "inliers": c.inliers, "score": c.score} for c in result.coarse_scores],
-        "escalation": result.escalation, "reason": result.reason, "timings_s": result.timings,
+        "escalation": result.escalation, "path": result.path, "path_reason": result.path_reason,
+        "reason": result.reason, "timings_s": result.timings,
         "H_1_from_0": None if result.H_1_from_0 is None else result.H_1_from_0.tolist(),
     }
     p0, p1 = result.matched_points(inliers_only=True)
@@ -58,6 +59,8 @@ def _print(summary: dict, result: PairResult) -> None:
             t.add_row("Eq. 1 f0 / f1", f"{result.f0:.1f} / {result.f1:.1f}")
     if result.best_views:
         t.add_row("best (t, phi, s)", ", ".join(f"({v.t:.2f}, {v.phi:.1f}°, {v.s:.2f})" for v in result.best_views))
+    if result.path:
+        t.add_row("path", f"{result.path} ({result.path_reason})")
     if result.escalation:
         t.add_row("escalation", result.escalation)
     t.add_row("matches / inliers", f"{summary['matches']} / {summary['inliers']}")

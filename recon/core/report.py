@@ -76,6 +76,8 @@ class PairRow:
     cached: bool = False
     seconds: float = 0.0
     reason: str = ""
+    path: str = ""  # the matcher's adaptive path: "originals", "targeted" or "full" (matching.adaptive)
+    path_reason: str = ""  # why that path
 
 
 @dataclass

@@ -176,6 +176,8 @@ def run_pair(pair: GtPair, img0: NDArray[np.uint8], img1: NDArray[np.uint8], met
         "inlier_ratio": inlier_ratio(result),
         "homography": result.H_1_from_0 is not None,
         "escalation": result.escalation,
+        "path": result.path,
+        "path_reason": result.path_reason,
         "best_view": None if bv is None else {"t": bv.t, "phi": bv.phi, "s": bv.s, "key": bv.key},
         "reason": result.reason,
         "timings": dict(result.timings),

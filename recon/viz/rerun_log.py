@@ -424,6 +424,8 @@ def pair_markdown(name0: str, name1: str, r: PairResult, cached: bool, verified:
         lines.append(f"| Eq. 1 f0 / f1 | {r.f0:.1f} / {r.f1:.1f} |")
     if r.best_views:
         lines.append("| best (t, phi, s) | " + ", ".join(f"({v.t:.2f}, {v.phi:.1f}°, {v.s:.2f})" for v in r.best_views) + " |")
+    if r.path:
+        lines.append(f"| path | {r.path} ({r.path_reason or '-'}) |")
     if r.escalation:
         lines.append(f"| escalation | {r.escalation} |")
     lines.append(f"| raw matches | {r.num_matches} |")

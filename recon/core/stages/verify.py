@@ -92,7 +92,8 @@ class Verify:
                 image0=a, image1=b, reference=None if r.reference is None else (a if r.reference == 0 else b),
                 best_view=None if bv is None else {"t": bv.t, "phi": bv.phi, "s": bv.s},
                 raw_matches=r.num_matches, merged_matches=int(len(mm)), verified_inliers=int(n_in),
-                two_view_config=conf, cached=bool(cached), seconds=float(r.timings.get("total", 0.0)), reason=r.reason))
+                two_view_config=conf, cached=bool(cached), seconds=float(r.timings.get("total", 0.0)), reason=r.reason,
+                path=r.path, path_reason=r.path_reason))
         run.report.pairs = rows
         nk = {n: len(d.keypoints[n]) for n in d.scene.names}
         any_inliers = any(len(m) for m in inliers)
