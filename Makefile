@@ -9,7 +9,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO   := out/demo
 
-.PHONY: setup demo test test-fast bench-pairs bench-difficulty clean
+.PHONY: setup demo test test-fast lint bench-pairs bench-difficulty clean
 
 $(STAMP): pyproject.toml
 	@./.ci/system-deps.sh
@@ -26,8 +26,13 @@ demo: $(STAMP)
 	$(BIN)/recon run $(DEMO)/scene --out $(DEMO)/recon --overwrite
 
 ## All tests (real data from ../shared/data where present, skipped with a reason otherwise).
-test: $(STAMP)
+test: lint
 	$(BIN)/python -m pytest -p no:dash -q
+
+## ruff (style, imports, bugbear, pyupgrade) and mypy on the library packages, as CI runs them.
+lint: $(STAMP)
+	$(BIN)/ruff check matching recon
+	$(BIN)/mypy
 
 ## Everything but the end-to-end runs (tests marked slow, see tests/conftest.py): under a minute.
 test-fast: $(STAMP)

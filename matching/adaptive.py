@@ -118,7 +118,7 @@ def estimate_viewpoint(H_1_from_0: NDArray[np.float64] | None, inliers0: NDArray
     H = np.asarray(H_1_from_0, np.float64)
     pts_ref = np.asarray(inliers0, np.float64)
     if reference == 1:
-        H = np.linalg.inv(H)
+        H = np.asarray(np.linalg.inv(H), np.float64)
         q = np.c_[pts_ref, np.ones(n)] @ H_1_from_0.T
         pts_ref = q[:, :2] / q[:, 2:3]
     J = homography_jacobian(H, pts_ref.mean(axis=0))

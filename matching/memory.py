@@ -97,7 +97,7 @@ class PeakRss:
             if r is not None and (self.peak is None or r > self.peak):
                 self.peak = r
 
-    def __enter__(self) -> "PeakRss":
+    def __enter__(self) -> PeakRss:
         _release_free_memory()
         self.before = _rss_bytes()
         self.peak = self.before

@@ -20,6 +20,7 @@ import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -125,7 +126,7 @@ class FeatureStore:
         if p is None or self.persist_error is not None:
             return
         tmp = p.with_name(f"{p.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
-        extra = {} if f.responses is None else {"responses": f.responses}
+        extra: dict[str, Any] = {} if f.responses is None else {"responses": f.responses}
         try:
             p.parent.mkdir(parents=True, exist_ok=True)
             np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles,

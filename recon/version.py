@@ -19,7 +19,7 @@ def version() -> str:
             meta = metadata(dist)
         except PackageNotFoundError:
             continue
-        if dist == DISTRIBUTION or (meta.get("Summary") or "").startswith("Extra-affine"):
+        if dist == DISTRIBUTION or ((meta.get_all("Summary") or [""])[0] or "").startswith("Extra-affine"):
             return str(meta["Version"])
     return "unknown"
 

@@ -168,7 +168,7 @@ def _exit_code_for(e: BaseException, argv: list[str] | None) -> int:
         line(str(e))
         return 2
     if isinstance(e, _click_exception_types("NoArgsIsHelpError")):
-        e.show()  # type: ignore[attr-defined]  (prints the help)
+        e.show()  # type: ignore[attr-defined]  # prints the help
         return 2
     if isinstance(e, _click_exception_types("ClickException")):
         msg = e.format_message()  # type: ignore[attr-defined]

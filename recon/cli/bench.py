@@ -9,10 +9,10 @@ from typing import Annotated, Optional
 
 import typer
 
+from recon.cli._options import json_file
 from recon.cli.options import image_size as parse_image_size
 from recon.cli.options import progress_option, seed_option, stock_presets, stock_presets_option, workers_option
 from recon.config import DEFAULT_MAX_SIZE
-from recon.cli._options import json_file
 
 bench_app = typer.Typer(name="bench", help="Benchmarks against ground truth.", no_args_is_help=True,
                         add_completion=False, pretty_exceptions_enable=False)
@@ -21,7 +21,6 @@ bench_app = typer.Typer(name="bench", help="Benchmarks against ground truth.", n
 def parse_methods(text: str | None) -> list[str]:
     """Comma-separated method names (all of METHODS when empty); UserError for an unknown one."""
     from matching.registry import METHODS
-
     from recon.errors import UserError
 
     if not text or not text.strip():
@@ -54,9 +53,8 @@ def pairs_cmd(
 ) -> None:
     """Precision, points, time and peak memory of each method on each GT pair (paper's Table I)."""
     from matching.registry import get_matcher
-
-    from recon.eval.bench_pairs import discover_pairs, print_report, run_bench
     from recon.errors import UserError
+    from recon.eval.bench_pairs import discover_pairs, print_report, run_bench
 
     names = parse_methods(methods)
     if not th > 0 or not math.isfinite(th):

@@ -8,8 +8,14 @@ from typing import Annotated, Optional
 
 import typer
 
-from recon.cli.options import (deprecated_stock_preset_option, progress_option, seed_option, stock_presets,
-                               stock_presets_option, workers_option)
+from recon.cli.options import (
+    deprecated_stock_preset_option,
+    progress_option,
+    seed_option,
+    stock_presets,
+    stock_presets_option,
+    workers_option,
+)
 from recon.config import DEFAULT_MAX_SIZE
 
 
@@ -39,13 +45,11 @@ def register(app: typer.Typer) -> None:
 
         from rich.console import Console
 
-        from recon.eval.compare import compare_scene, compare_table
-
-        from recon.errors import UserError
         from recon.core.outdir import claim_output
         from recon.core.pipeline import RunConfig
         from recon.core.scene import require_images
-        from recon.eval.compare import load_gt
+        from recon.errors import UserError
+        from recon.eval.compare import compare_scene, compare_table, load_gt
         from recon.viz.compare_rerun import COMPARE_RECORDING, log_comparison
         from recon.viz.rerun_log import find_viewer, parse_sink
 

@@ -80,9 +80,11 @@ def match_command(
     method: str = typer.Option("extra-affine", "--method", "-m", help="Pair matcher.",
                                metavar=choices_metavar(METHODS)),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth homography file (image 0 -> image 1)."),
-    save_vis: Optional[Path] = typer.Option(None, "--save-vis", callback=image_file, help="Write the matches drawn side by side, with "
-                                                                     "a legend and counts (PNG/JPG)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file, help="Write the result summary and matched points as JSON."),
+    save_vis: Optional[Path] = typer.Option(None, "--save-vis", callback=image_file,
+                                            help="Write the matches drawn side by side, with a legend and counts "
+                                                 "(PNG/JPG)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file,
+                                            help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
     variant: str = typer.Option("default", "--variant", metavar=choices_metavar(("default", "paper")),
                                 help="extra-affine only: the default, or the paper's plain reading."),
@@ -91,8 +93,8 @@ def match_command(
     rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
 ) -> None:
     """Match two images and report the reference choice, best view, matches and timings."""
-    from recon.errors import UserError
     from recon.core.jsonio import write_json_atomic
+    from recon.errors import UserError
     from recon.viz.vis import draw_matches, write_image_atomic
 
     if method not in METHODS:

@@ -105,10 +105,10 @@ def run(**kw: Any) -> None:
 
     from rich.console import Console
 
-    from recon.core.pipeline import run_scene
-    from recon.core.report import summary_table
     from recon.core.outdir import claim_output, clean_content_cache
     from recon.core.pairs import check_pairs_names, parse_pairs_spec
+    from recon.core.pipeline import run_scene
+    from recon.core.report import summary_table
     from recon.core.scene import require_images
     from recon.errors import UserError
     from recon.viz.rerun_log import RECORDING_NAME, RerunLogger, find_viewer, parse_sink

@@ -20,11 +20,11 @@ from numpy.typing import NDArray
 
 from recon.config import RunConfig
 from recon.core.engine import make_executor
-from recon.log import console
 from recon.core.observer import CompositeObserver
 from recon.core.progress import Progress
 from recon.core.report import RunReport
 from recon.core.state import StageState
+from recon.log import console
 
 log = logging.getLogger(__name__)
 

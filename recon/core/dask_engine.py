@@ -111,7 +111,7 @@ def pipeline_overrides(method: str, seed: int) -> tuple[tuple[str, Any], ...]:
     cfg = getattr(probe, "cfg", None)
     known = {f.name for f in dataclasses.fields(cfg)} if dataclasses.is_dataclass(cfg) else set()
     wanted = {"final_homography": False, "seed": int(seed), "workers": 1}
-    out = {k: v for k, v in wanted.items() if k in known}
+    out: dict[str, Any] = {k: v for k, v in wanted.items() if k in known}
     if method == "extra-affine":
         out["variant"] = "multiview"
     return tuple(sorted(out.items()))
@@ -203,7 +203,7 @@ def _unpin(st: _WorkerStore, name: str) -> None:
             st.pins.pop(name, None)
 
 
-def register_images(cache_dir: Path | None, grays: "dict[str, NDArray[np.uint8]]") -> None:
+def register_images(cache_dir: Path | None, grays: dict[str, NDArray[np.uint8]]) -> None:
     """Hand already decoded working-resolution images to this process's store over `cache_dir`,
     so `match_pair_on_worker` run in the driver's own threads (`--engine threads`) does not
     decode them again. Optional: a task loads any image it lacks."""
@@ -274,7 +274,7 @@ class DaskEngine:
             if self.cluster is not None:
                 self.cluster.close()
 
-    def __enter__(self) -> "DaskEngine":
+    def __enter__(self) -> DaskEngine:
         return self
 
     def __exit__(self, *exc: object) -> None:

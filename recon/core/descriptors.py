@@ -58,7 +58,7 @@ def sift_descriptors(gray_work: NDArray[np.uint8], kpts_full: NDArray[np.float32
         return np.zeros((0, 128), np.uint8), DescriptorStats()
     sx, sy = scale_xy
     k_work = np.stack([(k[:, 0] + 0.5) * sx - 0.5, (k[:, 1] + 0.5) * sy - 0.5], axis=1)
-    sift = cv2.SIFT_create()
+    sift = cv2.SIFT.create()
     det, desc = sift.detectAndCompute(gray_work, None)
     out = np.zeros((n, 128), np.float32)
     snapped = np.zeros(n, bool)

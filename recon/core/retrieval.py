@@ -46,10 +46,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from matching.viewfeatures import original_features, view_features
 from matching.features import DetectorConfig
 from matching.store import FeatureStore
 from matching.types import ViewParams
+from matching.viewfeatures import original_features, view_features
 from matching.views import capped_view
 
 Pair = tuple[str, str]
@@ -95,7 +95,7 @@ def as_retrieval_spec(spec: object) -> RetrievalSpec:
     kind = getattr(spec, "kind", None)
     if kind not in ("retrieval", "auto"):
         raise ValueError(f"--pairs {spec}: not a retrieval spec")
-    return RetrievalSpec(k=int(getattr(spec, "k")), sequential=int(getattr(spec, "sequential", 0)),
+    return RetrievalSpec(k=int(getattr(spec, "k", 0)), sequential=int(getattr(spec, "sequential", 0)),
                          auto=kind == "auto")
 
 
@@ -257,9 +257,9 @@ def vlad(desc: NDArray, centres: NDArray[np.float64]) -> NDArray[np.float64]:
         lab = _assign(x, centres)
         np.add.at(v, lab, x - centres[lab])
     v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
-    v = v.ravel()
-    v = np.sign(v) * np.sqrt(np.abs(v))
-    return v / max(float(np.linalg.norm(v)), 1e-12)
+    flat = v.ravel()
+    flat = np.sign(flat) * np.sqrt(np.abs(flat))
+    return flat / max(float(np.linalg.norm(flat)), 1e-12)
 
 
 def global_descriptors(descs: Sequence[NDArray], cfg: RetrievalConfig = RetrievalConfig()) -> NDArray[np.float64]:

@@ -130,7 +130,7 @@ def require_images(scene_dir: str | Path, minimum: int = 2) -> tuple[Path, list[
 def not_regular_images(image_dir: Path) -> list[tuple[str, str]]:
     """[(name, what it is)] for entries with an image extension that are not regular files
     (broken symbolic links, folders, FIFOs, devices); `list_candidates` leaves them out."""
-    out = []
+    out: list[tuple[str, str]] = []
     try:
         entries = sorted(image_dir.iterdir(), key=lambda p: p.name)
     except OSError:
@@ -153,7 +153,8 @@ def list_candidates(image_dir: Path, recursive: bool | None = None) -> tuple[lis
     with `/` (hidden folders are not entered)."""
     if recursive is None:
         recursive = image_dir.name == "images"
-    images, others = [], []
+    images: list[str] = []
+    others: list[str] = []
 
     def walk(folder: Path, prefix: str) -> None:
         try:

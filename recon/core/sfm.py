@@ -6,7 +6,8 @@ INITIAL_IMAGE_PAIR_REG_CALLBACK / NEXT_IMAGE_REG_CALLBACK, fn)` and `run()` fill
 `ReconstructionManager` (`size()`, `get(i)`) with every model, including the one being built
 when a callback fires (so a callback can read the live model: `pycolmap.incremental_mapping`
 does the same but its callbacks get no arguments and it writes every model to disk);
-`options.image_path` is where point colours are read from. The mapper's own options live in `IncrementalPipelineOptions.mapper` (IncrementalMapperOptions:
+`options.image_path` is where point colours are read from. The mapper's own options live in
+`IncrementalPipelineOptions.mapper` (IncrementalMapperOptions:
 `init_min_tri_angle`, `abs_pose_min_num_inliers`, ...) and the triangulator's in
 `.triangulation` (IncrementalTriangulatorOptions). `Reconstruction.write(dir)` writes the
 binary model; `compute_mean_track_length()`, `compute_mean_reprojection_error()`,
@@ -59,7 +60,6 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-
 
 # One thread for mapping: multi-threaded bundle adjustment can vary with machine load (one
 # rendered 480 px scene once gave no model under heavy load), and on fountain_P11 one thread
@@ -313,7 +313,7 @@ def write_points_ply(rec: pycolmap.Reconstruction, path: str | Path, clean: bool
         pc, _ = pc.remove_statistical_outlier(nb_neighbors=min(20, len(xyz) - 1), std_ratio=2.0)
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}.ply")  # open3d picks the format by extension
     try:
-        if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):
+        if not o3d.io.write_point_cloud(str(tmp), pc, write_ascii=False):  # type: ignore[arg-type]  # str works
             if _disk_full_near(path.parent):
                 raise OSError(errno.ENOSPC, "No space left on device", str(path))
             raise OSError(errno.EIO, "open3d could not write the point cloud", str(path))

@@ -41,6 +41,7 @@ other method's cloud.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
@@ -51,14 +52,13 @@ from typing import Any
 import numpy as np
 
 from matching.errors import InputError
-
 from matching.memory import PeakRss
 from recon.config import DEFAULT_MAX_SIZE
+from recon.core.jsonio import write_json_atomic
+from recon.core.scene import IMAGE_EXTS
 from recon.errors import UserError
 from recon.eval.evaluate import center, evaluate_model, umeyama
 from recon.eval.gt import find_gt, gt_source
-from recon.core.jsonio import write_json_atomic
-from recon.core.scene import IMAGE_EXTS
 
 OURS = "extra-affine"  # the matcher
 OURS_KEY = "extra_affine"  # its key in compare.json and its output folder
@@ -416,7 +416,7 @@ def compare_table(res: dict[str, Any]):
         names = list(methods)
         si, oi = names.index(f"stock-{preset}"), names.index(OURS_KEY)
 
-        def pair_row(lbl: str, stock_v: str, ours_v: str) -> None:
+        def pair_row(lbl: str, stock_v: str, ours_v: str, names: list[str] = names, si: int = si, oi: int = oi) -> None:
             cs = [""] * len(names)
             cs[si], cs[oi] = stock_v, ours_v
             t.add_row(lbl, *cs)
@@ -501,9 +501,14 @@ def run_scenes(root: str | Path, out_root: str | Path, scenes: Sequence[str] | N
     for scene in wanted:
         res = compare_scene(root / scene, out_root / scene, presets=presets, max_size=max_size, pairs=pairs,
                             seed=seed, progress=progress, strict=False, log=log, workers=workers,
-                            on_warning=lambda m, s=scene: log(f"{s}: warning: {m}"))
+                            on_warning=functools.partial(_scene_warning, log, scene))
         results.append(res)
         if json_path is not None:
             rows = [dict(r, scene=scene) for x in results for r in x["methods"].values()]
             write_json_atomic(json_path, {"meta": meta, "scenes": results, "rows": rows})
     return results
+
+
+def _scene_warning(log: Callable[[str], None], label: str, message: str) -> None:
+    """A run's warning in the log, prefixed with what it belongs to (scene)."""
+    log(f"{label}: warning: {message}")

@@ -19,6 +19,7 @@ the next run re-uses their `compare.json` unless --recompute), and, when matplot
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -27,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from recon.config import DEFAULT_MAX_SIZE
-from recon.eval.compare import OURS_KEY, compare_scene
 from recon.core.jsonio import write_json_atomic
+from recon.eval.compare import OURS_KEY, compare_scene
 
 DEFAULT_VIEWS = (3, 4, 5, 7, 9, 13)
 DEFAULT_MAX_AZIMUTH = 78.0
@@ -112,7 +113,7 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
         if res is None:
             res = compare_scene(scene, run_dir, presets=presets, max_size=max_size, seed=seed, strict=False,
                                 workers=workers, progress=progress,
-                                log=log, on_warning=lambda m, p=preset: log(f"{p}: warning: {m}"))
+                                log=log, on_warning=functools.partial(_warn_with, log, preset))
         rows += rows_of(res, n, step_deg(n, max_azimuth_deg))
         write_json_atomic(out / "difficulty.json", {"config": config, "rows": rows})
     return {"config": config, "rows": rows}
@@ -192,3 +193,8 @@ def plot_difficulty(data: dict[str, Any], path: str | Path) -> Path | None:
     plt.close(fig)
     os.replace(tmp, path)
     return path
+
+
+def _warn_with(log: Callable[[str], None], label: str, message: str) -> None:
+    """A run's warning in the log, prefixed with what it belongs to (preset)."""
+    log(f"{label}: warning: {message}")

@@ -112,7 +112,7 @@ def umeyama(src: NDArray[np.float64], dst: NDArray[np.float64], with_scale: bool
     est = pycolmap.estimate_sim3d(src, dst) if with_scale else pycolmap.estimate_rigid3d(src, dst)
     if est is None:
         raise ValueError("umeyama: points are (nearly) coincident or collinear")
-    s = float(np.asarray(est.scale).reshape(-1)[0]) if with_scale else 1.0
+    s = float(np.asarray(getattr(est, "scale", 1.0)).reshape(-1)[0])  # Rigid3d (no scale) when not with_scale
     return s, np.asarray(est.rotation.matrix(), np.float64), np.asarray(est.translation, np.float64)
 
 

@@ -42,7 +42,7 @@ class ExportConfig:
             raise UserError(f"--format {self.format!r}: choose one of {', '.join(FORMATS)}")
         if self.keep_distortion and self.format != "nerfstudio":
             raise UserError(f"--keep-distortion applies to --format nerfstudio only "
-                            f"({'the model is written as it is' if self.format == 'colmap-text' else 'Gaussian-splatting trainers need undistorted PINHOLE images'})")
+                            f"({_why_no_distortion(self.format)})")
         if self.workers < 0:
             raise UserError(f"--workers {self.workers}: must be >= 0 (0 = all cores)")
         if self.to is not None:
@@ -111,3 +111,9 @@ def export_run(cfg: ExportConfig) -> ExportResult:
                         f"{len(spaced)} name(s) such as {spaced[0]!r}; the binary model {src.model_dir} keeps them")
     return ExportResult(cfg.format, dst, dst / rel_model, int(rec.num_reg_images()), models,
                         int(rec.num_points3D()), warnings)
+
+
+def _why_no_distortion(fmt: str) -> str:
+    if fmt == "colmap-text":
+        return "the model is written as it is"
+    return "Gaussian-splatting trainers need undistorted PINHOLE images"

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pycolmap
 
-from recon.log import quiet_colmap
 from recon.errors import UserError
+from recon.log import quiet_colmap
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")  # what Gaussian-splatting trainers accept
 

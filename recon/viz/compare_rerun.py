@@ -51,7 +51,7 @@ class Sim3:
     t: NDArray[np.float64]
 
     @staticmethod
-    def identity() -> "Sim3":
+    def identity() -> Sim3:
         return Sim3(1.0, np.eye(3), np.zeros(3))
 
     def points(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -132,8 +132,8 @@ def log_comparison(sink: Sink, res: dict[str, Any], gt: dict[str, Any] | None = 
     if not sink.enabled:
         return None
     methods: dict[str, dict[str, Any]] = res["methods"]
-    models = {m: _read(m, row["out"]) for m, row in methods.items() if row.get("status") == "ok"}
-    models = {m: md for m, md in models.items() if md is not None}
+    read = {m: _read(m, row["out"]) for m, row in methods.items() if row.get("status") == "ok"}
+    models = {m: md for m, md in read.items() if md is not None}
     notes: dict[str, str] = {m: "no model" for m in methods if m not in models}
 
     if gt:
@@ -141,7 +141,8 @@ def log_comparison(sink: Sink, res: dict[str, Any], gt: dict[str, Any] | None = 
         frame = "ground truth"
     else:
         first = next(iter(models), None)
-        ref_centers = {n: center(P) for n, P in models[first].poses.items()} if first else {}
+        first_model = models[first] if first else None
+        ref_centers = {n: center(P) for n, P in first_model.poses.items()} if first_model else {}
         frame = f"{first}'s model" if first else "none (no method has a model)"
 
     logger = RerunLogger(sink, lambda n: Path(n), application_id="recon-compare")

@@ -62,9 +62,10 @@ import shutil
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -324,10 +325,10 @@ def coarse_grid(result: PairResult) -> tuple[NDArray[np.float32], list[str], lis
     chosen_keys = {v.key for v in result.best_views}
     chosen: list[tuple[int, int]] = []
     for r, k in enumerate(keys):
-        for c, cs in enumerate(sorted(rows[k], key=lambda x: x.view.phi)):
-            grid[r, c] = cs.score
+        for col, cs in enumerate(sorted(rows[k], key=lambda x: x.view.phi)):
+            grid[r, col] = cs.score
             if cs.view.key in chosen_keys:
-                chosen.append((r, c))
+                chosen.append((r, col))
     labels = [f"t={t:.2f}" + ("" if abs(s - 1.0) < 1e-9 else f" s={s:.2f}") for t, s in keys]
     return grid, labels, chosen
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from matching.types import PairResult
-
 
 INLIER_BGR = (60, 220, 60)
 OUTLIER_BGR = (40, 40, 230)
@@ -78,7 +78,7 @@ def draw_matches(img0: NDArray[np.uint8], img1: NDArray[np.uint8], result: PairR
     dm = [cv2.DMatch(k, k, 0.0) for k in range(len(idx))]
     thick = max(1, round(h / 800))
     flags = cv2.DrawMatchesFlags_NOT_DRAW_SINGLE_POINTS
-    canvas = None
+    canvas: Any = None
     for ok, color in ((False, OUTLIER_BGR), (True, INLIER_BGR)):  # outliers first, inliers on top
         mask = (inl == ok).astype(np.uint8).tolist()
         canvas = cv2.drawMatches(a, kp0, b, kp1, dm, canvas, thick, matchColor=color, singlePointColor=color,

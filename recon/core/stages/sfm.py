@@ -19,9 +19,9 @@ import pycolmap
 
 from recon.config import RunConfig
 from recon.core import sfm
+from recon.core.context import Run
 from recon.core.global_sfm import global_options, run_global
 from recon.core.global_sfm import options_summary as global_options_summary
-from recon.core.context import Run
 from recon.core.report import options_dict
 from recon.core.state import fingerprint
 
