@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -41,14 +43,22 @@ def write_json_atomic(path: str | Path, data: Any) -> None:
     `path` (`filename`), so the CLI can say which file could not be written.
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
+    with replaced_atomically(path, path.with_name(f".{path.name}.tmp-{os.getpid()}")) as tmp:
         path.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps(to_jsonable(data), indent=1, ensure_ascii=False, default=str)
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
+
+
+@contextmanager
+def replaced_atomically(path: Path, tmp: Path) -> Iterator[Path]:
+    """Write `tmp` inside the block; on success it replaces `path` (one rename), on any failure
+    (a full disk, Ctrl-C) it is removed and an OSError names `path` (`filename`), so the CLI can
+    say which file could not be written. Every atomic writer of the project goes through here."""
+    try:
+        yield tmp
         os.replace(tmp, path)
     except BaseException as e:
         remove_quietly(tmp)

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.types import CoarseScore, PairResult, ViewParams
-from recon.core.jsonio import remove_quietly
+from recon.core.jsonio import replaced_atomically
 from recon.core.scene import SceneImage, to_full_res
 
 PAIR_CACHE_VERSION = "1"
@@ -67,19 +67,13 @@ def save_pair_result(path: Path, r: PairResult) -> None:
                 path=r.path, path_reason=r.path_reason,
                 image_sizes=r.image_sizes, version=PAIR_CACHE_VERSION)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
-    try:
+    with replaced_atomically(path, tmp):
         np.savez(tmp, kpts0=np.asarray(r.kpts0, np.float32), kpts1=np.asarray(r.kpts1, np.float32),
                  matches=np.asarray(r.matches, np.int32), distances=np.asarray(r.distances, np.float32),
                  views=views, coarse=coarse,
                  H=(np.zeros((0, 3)) if r.H_1_from_0 is None else np.asarray(r.H_1_from_0)),
                  inlier_mask=(np.zeros(0, bool) if r.inlier_mask is None else np.asarray(r.inlier_mask, bool)),
                  has_mask=np.array(r.inlier_mask is not None), meta=np.array(json.dumps(meta)))
-        os.replace(tmp, path)
-    except BaseException as e:
-        remove_quietly(tmp)
-        if isinstance(e, OSError) and e.filename is None:
-            e.filename = str(path)
-        raise
 
 
 def load_pair_result(path: Path) -> PairResult | None:
