@@ -111,7 +111,7 @@ def legacy_match(matcher: ExtraAffineMatcher, store: FeatureStore, n0: str, n1: 
 def test_easy_rendered_pair_takes_the_originals_path_and_adaptive_off_is_the_full_flow(corner_scene):
     a, b = "view_02.png", "view_03.png"  # neighbouring views of the corner, 17 degrees apart
     store = _store(corner_scene, a, b)
-    cfg = MatcherConfig.multiview()
+    cfg = replace(MatcherConfig.multiview(), adaptive=True)  # `recon run --preset adaptive`
     r = ExtraAffineMatcher(replace(cfg, workers=1)).match(store, a, b)
     assert r.path == "originals", r.path_reason
     assert "original inliers" in r.path_reason and r.path_reason.endswith("-> originals")
@@ -222,3 +222,14 @@ def test_path_reaches_the_rerun_text_and_the_pair_cache(tmp_path):
     assert back is not None and (back.path, back.path_reason) == (r.path, r.path_reason)
     sw = r.swapped()
     assert (sw.path, sw.path_reason) == (r.path, r.path_reason)
+
+
+def test_recon_run_keeps_the_full_grid_unless_asked():
+    """Scenes default to the full grid (the cheap paths cost accuracy on wide-baseline facades,
+    see matching.config.MatcherConfig.multiview); pair matching and `--preset adaptive` use them."""
+    from recon.config import RunConfig, preset
+    from recon.core.stages.match import make_matcher
+
+    assert MatcherConfig().adaptive and not MatcherConfig.multiview().adaptive
+    assert not make_matcher(RunConfig().match).cfg.adaptive
+    assert make_matcher(preset("adaptive").match).cfg.adaptive
