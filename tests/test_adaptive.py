@@ -137,7 +137,7 @@ def test_easy_rendered_pair_takes_the_originals_path_and_adaptive_off_is_the_ful
 def test_large_tilt_rendered_pair_simulates(facade_extreme_scene):
     a, b = "view_00.png", "view_01.png"  # grazing views of the facade: the originals barely match
     store = _store(facade_extreme_scene, a, b)
-    r = ExtraAffineMatcher(MatcherConfig.multiview()).match(store, a, b)
+    r = ExtraAffineMatcher(replace(MatcherConfig.multiview(), adaptive=True)).match(store, a, b)  # --preset adaptive
     assert r.path == "full", r.path_reason
     assert "mutual SIFT matches" in r.path_reason
     assert len(r.coarse_scores) == 45
