@@ -23,6 +23,7 @@ from .coarse import CoarseConfig
 from .escalation import EscalationConfig
 from .fine import FineConfig
 from .reference import ReferenceConfig
+from .refine import RefineConfig
 from .views import GridConfig
 
 Variant = Literal["default", "paper", "multiview"]
@@ -43,6 +44,8 @@ class MatcherConfig:
     """The SIFT fine stage on the best views (§III-C)."""
     escalation: EscalationConfig = field(default_factory=EscalationConfig)
     """What a pair the fast path leaves unverified tries next."""
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """Least-squares patch refinement of the final matches (`matching.refine`; not in the paper)."""
     adaptive: bool = True
     """Decide per pair how much simulation it needs from the originals' SIFT geometry
     (`matching.adaptive`: `originals`, `targeted` or `full` path, cheapest first, falling through
@@ -101,7 +104,8 @@ class MatcherConfig:
         return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
                              coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0),
                              fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
-                             escalation=EscalationConfig(enabled=False), adaptive=False)
+                             escalation=EscalationConfig(enabled=False), adaptive=False,
+                             refine=RefineConfig(enabled=False))
 
     @staticmethod
     def multiview() -> MatcherConfig:

@@ -185,8 +185,9 @@ def test_reference_from_final_homography_runs_only_for_two_sided_attempts(graf, 
 
 def test_finishing_steps_are_in_order():
     names = [type(s).__name__ for s in FINISHING]
-    assert names == ["FinalHomography", "GuidedHomography", "GuidedEpipolar", "ReferenceFromFinalHomography"]
-    assert [lvl.label for lvl in ESCALATION] == ["topk", "swap", "pairs", "two-sided"]
+    assert names == ["FinalHomography", "GuidedHomography", "GuidedEpipolar", "RefinePoints",
+                     "ReferenceFromFinalHomography"]
+    assert [lvl.label for lvl in ESCALATION] == ["topk", "swap", "pairs", "steep", "two-sided"]
 
 
 def test_reference_from_final_homography_reads_image_0s_size_from_the_store():
