@@ -20,7 +20,7 @@ from typing import Any, Literal
 
 from .adaptive import AdaptiveConfig
 from .coarse import CoarseConfig
-from .escalation import EscalationConfig
+from .escalation import EscalationConfig, SteepConfig
 from .fine import FineConfig
 from .reference import ReferenceConfig
 from .refine import RefineConfig
@@ -122,7 +122,8 @@ class MatcherConfig:
         matching time by half at equal accuracy; `recon run --preset adaptive` (or
         `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths")."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
-                             escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15),
+                             escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,
+                                                         steep=SteepConfig(enabled=False)),
                              adaptive=False)
 
     @staticmethod
