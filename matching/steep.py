@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from .context import Attempt, MatchContext
 from .escalation import SteepConfig
-from .features import Features, detect
+from .features import DetectorConfig, Features, detect
 from .fine import FineMatches, guided_match
 from .geometry import homography_jacobian
 from .matching_utils import ransac_homography, ratio_match, unique_train
@@ -101,8 +101,14 @@ def antialias_blur(img: NDArray[np.uint8], J_t_from_r: NDArray[np.float64]) -> N
     return cv2.filter2D(img, -1, (k / k.sum()).astype(np.float32), borderType=cv2.BORDER_REFLECT)
 
 
+def rectify_detector(ctx: MatchContext, cfg: SteepConfig) -> DetectorConfig:
+    """The fine stage's SIFT with the rectified rounds' lower contrast threshold."""
+    fine = ctx.cfg.fine.detector
+    return DetectorConfig(fine.name, fine.max_features, fine.root_sift, cfg.rectify_contrast)
+
+
 def rectified_features(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64],
-                       centre_ref: NDArray) -> Features:
+                       centre_ref: NDArray, det: DetectorConfig) -> Features:
     """SIFT of image `ref` warped by the full homography into the target's frame (anti-aliased
     around `centre_ref`), keypoints mapped back to `ref`'s original pixels: the closest view
     of the reference to the target that the pair's geometry can synthesise."""
@@ -112,7 +118,7 @@ def rectified_features(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float
                                  flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     mask = cv2.warpPerspective(np.full(img.shape[:2], 255, np.uint8), H_t_from_r, (w, h), flags=cv2.INTER_NEAREST)
     mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
-    f = detect(warped, ctx.cfg.fine.detector, mask)
+    f = detect(warped, det, mask)
     f = f.subset(away_from_canvas_edge(f.kpts, f.sizes, mask))
     q = np.c_[f.kpts.astype(np.float64), np.ones(len(f))] @ np.linalg.inv(H_t_from_r).T
     f.kpts = (q[:, :2] / q[:, 2:3]).astype(np.float32)
@@ -124,12 +130,13 @@ def rectified_round(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64]
     """Guided matching of `rectified_features` against the target's original SIFT, repeated
     `cfg.rectify_rounds` times with the homography re-fitted each round; (matches, verified,
     last homography), or None when a round verifies fewer than 4."""
-    ft = original_features(ctx.store, ctx.names[1 - ref], ctx.cfg.fine.detector)
+    det = rectify_detector(ctx, cfg)
+    ft = original_features(ctx.store, ctx.names[1 - ref], det)
     out = None
     H = H_t_from_r
     for _ in range(cfg.rectify_rounds):
         w, h = ctx.size(ref)
-        fr = rectified_features(ctx, ref, H, np.array([(w - 1) / 2, (h - 1) / 2]))
+        fr = rectified_features(ctx, ref, H, np.array([(w - 1) / 2, (h - 1) / 2]), det)
         gm, gd = guided_match(fr.kpts, fr.descriptors, ft.kpts, ft.descriptors, H, cfg.rectify_px, cfg.guided_ratio)
         if len(gm) < 4:
             break
