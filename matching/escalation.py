@@ -54,6 +54,12 @@ class SteepConfig:
     perspective of a grazing plane, the homography does not."""
     rectify_px: float = 6.0
     """Radius of the rectified rounds' guided matching, px of the target."""
+    rectify_candidates: int = 3
+    """Best guided-verified views whose homographies seed rectified rounds."""
+    rectify_inlier_px: float = 1.5
+    """A rectified match verifies within this distance of the re-fitted homography, px of the target."""
+    rectify_min_ratio: float = 0.25
+    """Share of a rectified round's guided matches that must verify (see `steep.rectified_round`)."""
     rectify_contrast: float = 0.015
     """SIFT contrast threshold of the rectified rounds (both images): a grazing target keeps few
     keypoints at OpenCV's 0.04 (EVD cafe under its ground truth: 16 correct at 0.04, 51-66 at

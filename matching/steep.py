@@ -64,8 +64,7 @@ def _side_attempt(ctx: MatchContext, ref: int, cfg: SteepConfig, label: str) -> 
 
     scored = [s for s in ctx.map(score, views, min_items=2) if s[2] is not None]
     scored.sort(key=lambda s: (-s[0], s[1]))
-    best = Attempt(label=label, reference=ref, fine=_empty(ft.kpts), views=[], coarse=[], verified=0)
-    best_H: NDArray[np.float64] | None = None
+    seeds: list[tuple[Attempt, NDArray[np.float64]]] = []
     for _, v, H in scored[: cfg.candidates]:
         assert H is not None  # filtered above
         fv = view_features(ctx.store, name, v, det, "linear", True)
@@ -75,14 +74,21 @@ def _side_attempt(ctx: MatchContext, ref: int, cfg: SteepConfig, label: str) -> 
         gm, gd = unique_train(gm, gd)
         fm = FineMatches(kpts_ref=fv.kpts, kpts_target=ft.kpts, matches=gm, distances=gd, per_view={v.key: len(gm)})
         n_verified, mask = ctx.verify(fv.kpts[gm[:, 0]], ft.kpts[gm[:, 1]])
-        if n_verified > best.verified:
-            best = Attempt(label=label, reference=ref, fine=fm, views=[v], coarse=[], verified=n_verified)
-            best_H = H if n_verified < 8 else ransac_homography(fv.kpts[gm[mask, 0]], ft.kpts[gm[mask, 1]],
-                                                                 cfg.ransac_px, seed=ctx.cfg.seed)[0]
-    if best.verified >= 8 and cfg.rectify_rounds > 0 and best_H is not None:
-        rect = rectified_round(ctx, ref, best_H, cfg)
-        if rect is not None and rect[1] > best.verified:
-            best = Attempt(label=label, reference=ref, fine=rect[0], views=best.views, coarse=[], verified=rect[1])
+        if n_verified >= 8:
+            H_fit = ransac_homography(fv.kpts[gm[mask, 0]], ft.kpts[gm[mask, 1]], cfg.ransac_px, seed=ctx.cfg.seed)[0]
+            seeds.append((Attempt(label=label, reference=ref, fine=fm, views=[v], coarse=[], verified=n_verified),
+                          H if H_fit is None else H_fit))
+    seeds.sort(key=lambda s: -s[0].verified)
+    best = max((a for a, _ in seeds), key=lambda a: a.verified, default=None) or Attempt(
+        label=label, reference=ref, fine=_empty(ft.kpts), views=[], coarse=[], verified=0)
+    if cfg.rectify_rounds > 0:
+        rectified = []
+        for att, H_seed in seeds[: cfg.rectify_candidates]:
+            rect = rectified_round(ctx, ref, H_seed, cfg)
+            if rect is not None:
+                rectified.append(Attempt(label=label, reference=ref, fine=rect[0], views=att.views, coarse=[],
+                                         verified=rect[1]))
+        best = max([best, *rectified], key=lambda a: a.verified)
     return best
 
 
@@ -129,7 +135,13 @@ def rectified_round(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64]
                     ) -> tuple[FineMatches, int, NDArray[np.float64]] | None:
     """Guided matching of `rectified_features` against the target's original SIFT, repeated
     `cfg.rectify_rounds` times with the homography re-fitted each round; (matches, verified,
-    last homography), or None when a round verifies fewer than 4."""
+    last homography), or None when no round is trustworthy.
+
+    Verified = matches within `rectify_inlier_px` of the re-fitted homography. Guided matching
+    under a *wrong* homography still pairs keypoints inside the search radius, and a loose RANSAC
+    finds "inliers" among them; true geometry puts most rectified matches within a pixel or two,
+    chance puts (inlier_px / rectify_px)^2 of them there (6 % at 1.5 / 6 px), so a round also
+    needs `rectify_min_ratio` of its matches verified."""
     det = rectify_detector(ctx, cfg)
     ft = original_features(ctx.store, ctx.names[1 - ref], det)
     out = None
@@ -141,14 +153,14 @@ def rectified_round(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64]
         if len(gm) < 4:
             break
         gm, gd = unique_train(gm, gd)
-        n_verified, mask = ctx.verify(fr.kpts[gm[:, 0]], ft.kpts[gm[:, 1]])
-        if n_verified < 4 or (out is not None and n_verified <= out[1]):
+        H_new, mask = ransac_homography(fr.kpts[gm[:, 0]], ft.kpts[gm[:, 1]], cfg.rectify_inlier_px, seed=ctx.cfg.seed)
+        n_verified = int(mask.sum())
+        if (H_new is None or n_verified < 8 or n_verified < cfg.rectify_min_ratio * len(gm)
+                or not plausible_homography(H_new, fr.kpts[gm[mask, 0]])
+                or (out is not None and n_verified <= out[1])):
             break
-        H_new, _ = ransac_homography(fr.kpts[gm[mask, 0]], ft.kpts[gm[mask, 1]], cfg.rectify_px / 2, seed=ctx.cfg.seed)
         out = (FineMatches(kpts_ref=fr.kpts, kpts_target=ft.kpts, matches=gm, distances=gd, per_view={"rectified": len(gm)}),
                n_verified, H)
-        if H_new is None:
-            break
         H = H_new
     return out
 
