@@ -120,11 +120,15 @@ class MatcherConfig:
         meant to be best (rendered facade-wide: 0.23° instead of 0.11° relative rotation error;
         corner / corner-wide: 66-83 % of the verified inliers per pair), while they cut fountain_P11's
         matching time by half at equal accuracy; `recon run --preset adaptive` (or
-        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths")."""
+        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths").
+
+        No patch refinement either: on fountain_P11 it raised the reprojection error (0.651 ->
+        0.711 px) at an equal rotation error (0.233° / 0.234°), though it helped the rendered corner
+        (0.041° -> 0.033°); `--set matcher.refine.enabled=true` turns it on (docs/decisions.md)."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,
                                                          steep=SteepConfig(enabled=False)),
-                             adaptive=False)
+                             adaptive=False, refine=RefineConfig(enabled=False))
 
     @staticmethod
     def from_overrides(**kw: Any) -> MatcherConfig:
