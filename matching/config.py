@@ -20,9 +20,10 @@ from typing import Any, Literal
 
 from .adaptive import AdaptiveConfig
 from .coarse import CoarseConfig
-from .escalation import EscalationConfig
+from .escalation import EscalationConfig, SteepConfig
 from .fine import FineConfig
 from .reference import ReferenceConfig
+from .refine import RefineConfig
 from .views import GridConfig
 
 Variant = Literal["default", "paper", "multiview"]
@@ -43,6 +44,8 @@ class MatcherConfig:
     """The SIFT fine stage on the best views (§III-C)."""
     escalation: EscalationConfig = field(default_factory=EscalationConfig)
     """What a pair the fast path leaves unverified tries next."""
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """Least-squares patch refinement of the final matches (`matching.refine`; not in the paper)."""
     adaptive: bool = True
     """Decide per pair how much simulation it needs from the originals' SIFT geometry
     (`matching.adaptive`: `originals`, `targeted` or `full` path, cheapest first, falling through
@@ -101,7 +104,8 @@ class MatcherConfig:
         return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
                              coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0),
                              fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
-                             escalation=EscalationConfig(enabled=False), adaptive=False)
+                             escalation=EscalationConfig(enabled=False), adaptive=False,
+                             refine=RefineConfig(enabled=False))
 
     @staticmethod
     def multiview() -> MatcherConfig:
@@ -116,10 +120,15 @@ class MatcherConfig:
         meant to be best (rendered facade-wide: 0.23° instead of 0.11° relative rotation error;
         corner / corner-wide: 66-83 % of the verified inliers per pair), while they cut fountain_P11's
         matching time by half at equal accuracy; `recon run --preset adaptive` (or
-        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths")."""
+        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths").
+
+        No patch refinement either: on fountain_P11 it raised the reprojection error (0.651 ->
+        0.711 px) at an equal rotation error (0.233° / 0.234°), though it helped the rendered corner
+        (0.041° -> 0.033°); `--set matcher.refine.enabled=true` turns it on (docs/decisions.md)."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
-                             escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15),
-                             adaptive=False)
+                             escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,
+                                                         steep=SteepConfig(enabled=False)),
+                             adaptive=False, refine=RefineConfig(enabled=False))
 
     @staticmethod
     def from_overrides(**kw: Any) -> MatcherConfig:

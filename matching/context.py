@@ -105,7 +105,7 @@ class MatchContext:
         """The attempt as a PairResult in image 0 / image 1 order (keypoints, matches and the
         views' reference swapped when image 1 was simulated)."""
         fm = att.fine
-        sizes = (self.size(0), self.size(1))
+        sizes = (self.size(att.reference), self.size(1 - att.reference))  # (reference, target), swapped below
         res = PairResult(method=self.method, kpts0=fm.kpts_ref, kpts1=fm.kpts_target,
                          matches=fm.matches, distances=fm.distances, reference=0,
                          reference_reason=reason, f0=f0, f1=f1,

@@ -9,7 +9,8 @@ only while the best attempt has fewer than `min_inliers` verified matches (a hom
 1. `topk`: fuse the fine matches of the `top_k` best coarse views (several surfaces / poses);
 2. `swap`: simulate the other image instead (the reference choice was wrong);
 3. `pairs`: two-sided, view pair by view pair (`matching.viewpairs`);
-4. `two-sided`: both images simulated and pooled (`matching.twosided`).
+4. `steep`: one image tilted past the grid, t = 8 .. 22.6 (`matching.steep`): grazing targets;
+5. `two-sided`: both images simulated and pooled (`matching.twosided`).
 
 The levels are strategies of `matching.strategies`; this module holds only their options and the
 gate. What each level solves on the EVD pairs, and at what cost, is in docs/decisions.md.
@@ -20,6 +21,49 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .views import GridConfig, Interp
+
+
+@dataclass(frozen=True)
+class SteepConfig:
+    """Options of the `steep` level (`matching.steep`): one-sided views tilted beyond the grid."""
+
+    enabled: bool = True
+    """Run the level at all."""
+    tilts: tuple[float, ...] = (8.0, 11.3137, 16.0, 22.6274)
+    """Tilts simulated: the paper's ratio sqrt(2) continued past its grid (k = 6..9)."""
+    b: float = 72.0
+    """Longitude step at t = 1, degrees (the step at tilt t is b / t, as the paper's grid)."""
+    ratio: float = 0.8
+    """Lowe's ratio of each view's matches against the target."""
+    ransac_px: float = 8.0
+    """RANSAC threshold scoring each view, px of the target (mapped-back keypoints of a view
+    tilted by t carry errors of several px along the tilt)."""
+    candidates: int = 6
+    """Best-scoring views re-matched under their own homography."""
+    guided_px: float = 12.0
+    """Radius of that guided re-matching, px of the target."""
+    guided_ratio: float = 0.9
+    """Lowe's ratio of the guided re-matching (only nearby keypoints compete)."""
+    min_matches: int = 8
+    """Views with fewer ratio-test matches are not scored."""
+    both_sides: bool = True
+    """Also simulate the other image when the reference's views verify too little."""
+    rectify_rounds: int = 2
+    """Rounds of matching the reference warped by the winning view's full homography into the
+    target's frame (`steep.rectified_round`; 0 = none): the affine view only approximates the
+    perspective of a grazing plane, the homography does not."""
+    rectify_px: float = 6.0
+    """Radius of the rectified rounds' guided matching, px of the target."""
+    rectify_candidates: int = 3
+    """Best guided-verified views whose homographies seed rectified rounds."""
+    rectify_inlier_px: float = 1.5
+    """A rectified match verifies within this distance of the re-fitted homography, px of the target."""
+    rectify_min_ratio: float = 0.25
+    """Share of a rectified round's guided matches that must verify (see `steep.rectified_round`)."""
+    rectify_contrast: float = 0.015
+    """SIFT contrast threshold of the rectified rounds (both images): a grazing target keeps few
+    keypoints at OpenCV's 0.04 (EVD cafe under its ground truth: 16 correct at 0.04, 51-66 at
+    0.01-0.02), and matching under a known homography keeps weak keypoints' false matches out."""
 
 
 @dataclass(frozen=True)
@@ -62,6 +106,8 @@ class EscalationConfig:
     original target."""
     guided_ratio: float = 0.8
     """Lowe's ratio of that guided re-matching."""
+    steep: SteepConfig = field(default_factory=SteepConfig)
+    """The `steep` level (`matching.steep`): the reference tilted past the grid, t = 8 .. 22.6."""
     two_sided: bool = True
     """Run the `two-sided` level, the pooled last resort (`matching.twosided`); the only level
     that solves EVD dum, and the most expensive (docs/decisions.md)."""

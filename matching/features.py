@@ -27,10 +27,13 @@ class DetectorConfig:
     """Feature budget; 0 = unlimited (SIFT only; ORB then keeps 1000)."""
     root_sift: bool = False
     """L1-normalise and square-root SIFT descriptors (Arandjelovic 2012)."""
+    contrast: float = 0.04
+    """SIFT's contrast threshold (OpenCV's default 0.04; lower finds more, weaker keypoints)."""
 
     @property
     def key(self) -> str:
-        return f"{self.name}{self.max_features}{'r' if self.root_sift else ''}"
+        contrast = "" if self.contrast == 0.04 else f"c{self.contrast:g}"
+        return f"{self.name}{self.max_features}{'r' if self.root_sift else ''}{contrast}"
 
     @property
     def norm(self) -> int:
@@ -78,7 +81,7 @@ def strongest(f: Features, n: int) -> Features:
 def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     """A fresh OpenCV detector (they are not thread-safe to share, so one per call)."""
     if cfg.name == "sift":
-        return cv2.SIFT.create(nfeatures=cfg.max_features)
+        return cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast)
     if cfg.name == "orb":
         # fastThreshold lowered from 20 so low-contrast simulated views still yield keypoints
         return cv2.ORB.create(nfeatures=cfg.max_features or 1000, fastThreshold=10)

@@ -18,12 +18,16 @@ from __future__ import annotations
 
 from typing import Protocol
 
+import numpy as np
+
 from .coarse import coarse_search, rank_views
 from .context import Attempt, MatchContext
 from .fine import fine_match, select_fine_views
 from .guided import guided_epipolar_round, guided_homography_round
 from .matching_utils import ransac_homography
 from .reference import reference_from_final_homography
+from .refine import refine_matches
+from .steep import steep_attempt
 from .twosided import two_sided_attempt
 from .types import PairResult, ViewParams
 from .viewpairs import view_pair_attempt
@@ -114,6 +118,18 @@ class ViewPairs:
         return view_pair_attempt(ctx, best)
 
 
+class Steep:
+    """One image tilted past the grid, t = 8 .. 22.6 (`matching.steep`)."""
+
+    label = "steep"
+
+    def applies(self, ctx: MatchContext, best: Attempt) -> bool:
+        return ctx.cfg.escalation.steep.enabled
+
+    def run(self, ctx: MatchContext, best: Attempt) -> Attempt:
+        return steep_attempt(ctx, best, ctx.cfg.escalation.steep, self.label)
+
+
 class TwoSided:
     """Both images simulated and pooled (`matching.twosided`)."""
 
@@ -126,7 +142,7 @@ class TwoSided:
         return two_sided_attempt(ctx, best)
 
 
-ESCALATION: tuple[Level, ...] = (TopK(), Swap(), ViewPairs(), TwoSided())
+ESCALATION: tuple[Level, ...] = (TopK(), Swap(), ViewPairs(), Steep(), TwoSided())
 """The escalation levels, cheapest first; `fast_path` precedes them."""
 
 
@@ -186,6 +202,49 @@ class GuidedEpipolar:
         return guided_epipolar_round(ctx, att, res)
 
 
+class RefinePoints:
+    """Least-squares patch refinement of the final matches (`matching.refine`): each match's
+    simulated-side keypoint is re-localised against the other image's under the local affine
+    geometry, then the final homography is re-fitted to the refined points."""
+
+    def applies(self, ctx: MatchContext, att: Attempt, res: PairResult) -> bool:
+        return ctx.cfg.refine.enabled and res.num_matches >= 4 and bool(att.views)
+
+    def run(self, ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+        with ctx.timed("refine"):
+            return refine_result(ctx, att, res)
+
+
+def refine_result(ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
+    """`res` with the simulated image's matched keypoints refined (`refine.refine_matches`);
+    the other image's keypoints, detected in its unwarped original, stay where they are."""
+    moving = att.reference  # image 0 or 1 of the pair, whichever this attempt simulated
+    fixed = 1 - moving
+    kpts = (res.kpts0, res.kpts1)
+    img = (ctx.store.image(ctx.names[0]), ctx.store.image(ctx.names[1]))
+    m = res.matches
+    pts_m, pts_f = kpts[moving][m[:, moving]], kpts[fixed][m[:, fixed]]
+    H_f_from_m = None if res.H_1_from_0 is None else np.asarray(
+        res.H_1_from_0 if moving == 0 else np.linalg.inv(res.H_1_from_0), np.float64)
+    refined, moved = refine_matches(img[moving], img[fixed], pts_m, pts_f, H_f_from_m, ctx.cfg.refine)
+    # one keypoint per match on the moving side, so refined positions never collide across matches
+    new_kpts = refined.astype(np.float32)
+    new_idx = np.arange(len(m), dtype=np.int32)
+    matches = m.copy()
+    matches[:, moving] = new_idx
+    if moving == 0:
+        res.kpts0 = new_kpts
+    else:
+        res.kpts1 = new_kpts
+    res.matches = matches
+    if res.H_1_from_0 is not None:
+        p0, p1 = res.matched_points(inliers_only=False)
+        H, mask = ransac_homography(p0, p1, ctx.cfg.final_ransac_px, seed=ctx.cfg.seed)
+        if H is not None and mask.sum() >= res.num_inliers:
+            res.H_1_from_0, res.inlier_mask = H, mask
+    return res
+
+
 class ReferenceFromFinalHomography:
     """Both images simulated: the verified final homography names the reference
     (`reference.reference_from_final_homography`)."""
@@ -197,6 +256,6 @@ class ReferenceFromFinalHomography:
         return reference_from_final_homography(res, ctx.size(0), ctx.cfg.escalation.min_inliers)
 
 
-FINISHING: tuple[Finishing, ...] = (FinalHomography(), GuidedHomography(), GuidedEpipolar(),
+FINISHING: tuple[Finishing, ...] = (FinalHomography(), GuidedHomography(), GuidedEpipolar(), RefinePoints(),
                                     ReferenceFromFinalHomography())
 """The finishing steps, in order."""

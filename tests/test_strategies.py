@@ -185,8 +185,9 @@ def test_reference_from_final_homography_runs_only_for_two_sided_attempts(graf, 
 
 def test_finishing_steps_are_in_order():
     names = [type(s).__name__ for s in FINISHING]
-    assert names == ["FinalHomography", "GuidedHomography", "GuidedEpipolar", "ReferenceFromFinalHomography"]
-    assert [lvl.label for lvl in ESCALATION] == ["topk", "swap", "pairs", "two-sided"]
+    assert names == ["FinalHomography", "GuidedHomography", "GuidedEpipolar", "RefinePoints",
+                     "ReferenceFromFinalHomography"]
+    assert [lvl.label for lvl in ESCALATION] == ["topk", "swap", "pairs", "steep", "two-sided"]
 
 
 def test_reference_from_final_homography_reads_image_0s_size_from_the_store():
@@ -207,9 +208,6 @@ def test_reference_from_final_homography_reads_image_0s_size_from_the_store():
     assert out.reference == 0 and out.reference_reason.endswith("image 0 is 1.04x larger")
 
 
-@pytest.mark.xfail(strict=True, reason="known bug kept for behaviour identity with the pre-refactor matcher: "
-                   "to_result builds image_sizes in image order, then swaps them with the matches when "
-                   "image 1 was simulated; fix: sizes = (size(att.reference), size(1 - att.reference))")
 def test_results_of_image_1_simulated_keep_image_sizes_in_image_order():
     store = FeatureStore()
     store.add_image("a", np.zeros((100, 200), np.uint8))

@@ -1,0 +1,159 @@
+"""Least-squares patch refinement of matched points under the pair's local affine geometry.
+
+Keypoints found in a strongly tilted simulated view land 2-5 px off once mapped back to the
+original image: the view compressed the surface by t, so one pixel of detection noise there is
+t pixels in the original. The geometry is right, the localisation is not. This step re-localises
+every match where both patches are seen near-frontally:
+
+1. the local affine `A` (image 0 -> image 1 around the match) comes from the pair's homography
+   (its Jacobian) when one was fitted, else from an affine fitted to the match's nearest
+   neighbouring matches (piecewise-planar scenes, fundamental-matrix pairs);
+2. both images are warped into a common frame `F` in which *neither* is downsampled: with
+   `A = U diag(s1, s2) V^T`, image 0 maps to F by `diag(a1, a2) V^T` and image 1 by
+   `diag(a1/s1, a2/s2) U^T` with `a_i = max(1, s_i)`, so no aliasing whichever side is larger;
+3. image 1's patch is searched in image 0's warped window by normalised cross-correlation
+   (`cv2.matchTemplate`), refined to sub-pixel by a parabola through the peak, and the offset is
+   taken back to image 0 (image 1's keypoint, detected in an unwarped original, stays fixed).
+
+A match whose correlation peak is weak (`min_ncc`), on the window's border, or whose shift is
+larger than `max_shift_px` keeps its original position. Pixel convention: OpenCV (see
+`matching.types`). Figures (graf, EVD, scenes) are in docs/decisions.md ("## matching").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from .geometry import homography_jacobian
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Options of the patch refinement (see the module doc)."""
+
+    enabled: bool = True
+    """Refine the final matches at all."""
+    radius_px: int = 8
+    """Half-size of the compared patch in the common frame F, px (the patch is 2r+1 wide)."""
+    search_px: int = 4
+    """How far (px of F) the patch is searched around the predicted position."""
+    max_shift_px: float = 3.5
+    """Largest accepted correction, px of image 1 (beyond it the match keeps its position)."""
+    min_ncc: float = 0.7
+    """Smallest accepted normalised cross-correlation at the peak."""
+    max_upsample: float = 4.0
+    """Cap of either image's magnification into F (very strong tilts would otherwise warp a
+    one-pixel strip into the whole patch)."""
+    neighbours: int = 12
+    """Matches that fit the local affine around each match when no homography was fitted."""
+
+
+def local_affines_from_homography(H_1_from_0: NDArray[np.float64], pts0: NDArray) -> NDArray[np.float64]:
+    """(N, 2, 2) local affines of `H_1_from_0` at image-0 points `pts0`."""
+    return np.stack([homography_jacobian(H_1_from_0, p) for p in pts0]) if len(pts0) else np.zeros((0, 2, 2))
+
+
+def local_affines_from_neighbours(pts0: NDArray, pts1: NDArray, k: int) -> NDArray[np.float64]:
+    """(N, 2, 2) affines fitted by least squares to each match's `k` nearest matches (in image 0);
+    NaN where fewer than 4 matches exist or the fit is degenerate."""
+    n = len(pts0)
+    out = np.full((n, 2, 2), np.nan)
+    if n < 4:
+        return out
+    p0 = np.asarray(pts0, np.float64)
+    p1 = np.asarray(pts1, np.float64)
+    k = min(k, n)
+    _, idx = cKDTree(p0).query(p0, k=k)
+    for i in range(n):
+        nb = idx[i]
+        X = np.hstack([p0[nb] - p0[i], np.ones((len(nb), 1))])
+        Y = p1[nb] - p1[i]
+        sol, *_ = np.linalg.lstsq(X, Y, rcond=None)
+        A = sol[:2].T
+        if np.isfinite(A).all() and abs(np.linalg.det(A)) > 1e-6:
+            out[i] = A
+    return out
+
+
+def common_frame(A: NDArray[np.float64], cap: float) -> tuple[NDArray, NDArray] | None:
+    """(P0, P1): 2x2 maps of image 0 and image 1 into the common frame F (P1 @ A == P0), each
+    magnifying by at least 1 in every direction, capped at `cap`; None for a degenerate A."""
+    U, s, Vt = np.linalg.svd(A)
+    if not np.all(s > 1e-6) or not np.isfinite(s).all():
+        return None
+    a = np.maximum(1.0, s)
+    a = np.minimum(a, cap * s)  # image 1's magnification a/s stays <= cap
+    a = np.minimum(a, cap)      # and image 0's stays <= cap
+    P0 = np.diag(a) @ Vt
+    P1 = np.diag(a / s) @ U.T
+    return P0, P1
+
+
+def _patch(img: NDArray[np.float32], centre: NDArray, P: NDArray, half: int) -> NDArray[np.float32]:
+    """The (2 half + 1)^2 patch of frame F around `centre` (pixels of `img`), F = P (x - centre)."""
+    Pinv = np.linalg.inv(P)
+    c = np.array([half, half], np.float64)
+    M = np.hstack([Pinv, (np.asarray(centre, np.float64) - Pinv @ c)[:, None]])
+    size = 2 * half + 1
+    return cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def _subpixel(r: NDArray[np.float32], y: int, x: int) -> tuple[float, float]:
+    """Parabolic sub-pixel offset (dx, dy) of the peak of `r` at (y, x) (interior peak)."""
+    def vertex(a: float, b: float, c: float) -> float:
+        d = a - 2 * b + c
+        return 0.0 if abs(d) < 1e-12 else float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+    return vertex(r[y, x - 1], r[y, x], r[y, x + 1]), vertex(r[y - 1, x], r[y, x], r[y + 1, x])
+
+
+def refine_points0(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArray, pts1: NDArray,
+                   A_1_from_0: NDArray[np.float64], cfg: RefineConfig) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """(refined image-0 points, moved mask): each `pts0[i]` moved so that its patch, warped by
+    `A_1_from_0[i]`, best correlates with image 1's patch at `pts1[i]` (which stays fixed)."""
+    f0 = img0.astype(np.float32)
+    f1 = img1.astype(np.float32)
+    out = np.asarray(pts0, np.float32).copy()
+    moved = np.zeros(len(out), bool)
+    r, m = cfg.radius_px, cfg.search_px
+    for i, (p0, p1, A) in enumerate(zip(pts0, pts1, A_1_from_0)):
+        if not np.isfinite(A).all():
+            continue
+        frame = common_frame(A, cfg.max_upsample)
+        if frame is None:
+            continue
+        P0, P1 = frame
+        templ = _patch(f1, p1, P1, r)
+        window = _patch(f0, p0, P0, r + m)
+        if templ.std() < 1e-3 or window.std() < 1e-3:
+            continue
+        res = cv2.matchTemplate(window, templ, cv2.TM_CCOEFF_NORMED)
+        _, peak, _, (x, y) = cv2.minMaxLoc(res)
+        if peak < cfg.min_ncc or not (0 < x < 2 * m and 0 < y < 2 * m):
+            continue
+        dx, dy = _subpixel(res, y, x)
+        d_F = np.array([x + dx - m, y + dy - m])
+        d0 = np.linalg.solve(P0, d_F)  # the correction in image-0 pixels
+        if np.linalg.norm(A @ d0) > cfg.max_shift_px:
+            continue
+        out[i] = p0 + d0
+        moved[i] = True
+    return out, moved
+
+
+def refine_matches(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArray, pts1: NDArray,
+                   H_1_from_0: NDArray[np.float64] | None, cfg: RefineConfig) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Refined image-0 points of the matches (pts0[i], pts1[i]) and which moved; the local
+    affines come from `H_1_from_0` when given, else from neighbouring matches."""
+    if len(pts0) == 0:
+        return np.asarray(pts0, np.float32).reshape(0, 2), np.zeros(0, bool)
+    if H_1_from_0 is not None:
+        A = local_affines_from_homography(np.asarray(H_1_from_0, np.float64), np.asarray(pts0, np.float64))
+    else:
+        A = local_affines_from_neighbours(pts0, pts1, cfg.neighbours)
+    return refine_points0(img0, img1, pts0, pts1, A, cfg)
