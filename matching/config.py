@@ -99,7 +99,8 @@ class MatcherConfig:
     def paper() -> MatcherConfig:
         """A plain reading of the paper: Eq. 1 reference, most-matches ranking, no blur, no escalation."""
         return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
-                             coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0),
+                             coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0,
+                                                     search="grid"),
                              fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
                              escalation=EscalationConfig(enabled=False), adaptive=False)
 
@@ -116,10 +117,13 @@ class MatcherConfig:
         meant to be best (rendered facade-wide: 0.23° instead of 0.11° relative rotation error;
         corner / corner-wide: 66-83 % of the verified inliers per pair), while they cut fountain_P11's
         matching time by half at equal accuracy; `recon run --preset adaptive` (or
-        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths")."""
+        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths").
+        The coarse search scores the full grid too (`CoarseConfig.search`): the coarse-to-fine
+        search was measured on planar pairs only, and a scene pair's second surface may peak
+        where the sparse first pass finds nothing."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15),
-                             adaptive=False)
+                             adaptive=False, coarse=CoarseConfig(search="grid"))
 
     @staticmethod
     def from_overrides(**kw: Any) -> MatcherConfig:
