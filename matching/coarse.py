@@ -8,9 +8,10 @@ diagnostics show the (tilt, longitude) grid.
 
 By default the grid is searched coarse to fine (`CoarseConfig.search`): a sparse subset of the
 views first (`seed_views`: every `search_stride`-th longitude per tilt, the offset turning with
-the tilt so that every longitude band is sampled at some tilt), then the grid neighbours of the
-best views until the best views' neighbourhoods are all scored (`grid_neighbours`); a side
-whose sparse views show no overlap (< `search_min_inliers`) is scored in full. Unscored views
+the tilt so that every longitude band is sampled at some tilt; while no view shows clear
+overlap, >= `search_min_inliers`, the next offset, up to the whole grid), then the grid
+neighbours of the best views until the best views' neighbourhoods are all scored
+(`grid_neighbours`). Unscored views
 are absent from the returned scores. `search="grid"` scores every view, as the paper.
 """
 
@@ -71,8 +72,9 @@ class CoarseConfig:
     """Coarse-to-fine: the unscored grid neighbours of this many best views are scored, again
     and again, until they are all scored (at least `fine_top_k`, the views the fine stage uses)."""
     search_min_inliers: int = 15
-    """Coarse-to-fine: below this many RANSAC inliers in the best sparse view the side shows no
-    clear overlap (random ORB matches reach ~10) and every view is scored, as in "grid"."""
+    """Coarse-to-fine: below this many RANSAC inliers in the best view of a sparse pass the side
+    shows no clear overlap yet (random ORB matches reach ~10) and the next pass (the next
+    longitudes) is scored; after `search_stride` passes every view is, as in "grid"."""
     search_min_views: int = 20
     """Coarse-to-fine only for view lists of at least this many distinct ORB views (the main
     grid has 43); shorter lists, such as the adaptive path's targeted views, are scored in full."""
@@ -151,15 +153,19 @@ def grid_neighbours(views: list[ViewParams]) -> dict[ViewParams, list[ViewParams
     return out
 
 
-def seed_views(views: list[ViewParams], stride: int) -> list[ViewParams]:
-    """The sparse first pass of the coarse-to-fine search: t = 1 (one view), and at the k-th
-    tilt every `stride`-th longitude starting at the (k mod stride)-th, so that consecutive tilts
-    sample different longitudes (a peak narrow in longitude and spanning two tilts is hit)."""
+def seed_views(views: list[ViewParams], stride: int, phase: int = 0) -> list[ViewParams]:
+    """One sparse pass of the coarse-to-fine search: t = 1 (one view, in pass 0 only), and at
+    the k-th tilt every `stride`-th longitude starting at the ((k + phase) mod stride)-th, so
+    that consecutive tilts sample different longitudes (a peak narrow in longitude and spanning
+    two tilts is hit); the passes `phase` = 0 .. stride - 1 together cover every view once."""
     levels, _ = _tilt_levels(views)
     out: list[ViewParams] = []
     for k, t in enumerate(levels):
         at_t = [v for v in views if v.t == t]
-        out += at_t[:1] if t == 1.0 else at_t[k % stride::stride]
+        if t == 1.0:
+            out += at_t[:1] if phase == 0 else []
+        else:
+            out += at_t[(k + phase) % stride::stride]
     return out
 
 
@@ -171,11 +177,13 @@ def search_coarse_to_fine(views: list[ViewParams], score: Callable[[list[ViewPar
     round's batch is in grid order and depends only on the scores so far.
     """
     order = {v: i for i, v in enumerate(views)}
-    scored = {c.view: c for c in score(seed_views(views, max(1, cfg.search_stride)))}
-    if rank_views(list(scored.values()))[0].inliers < cfg.search_min_inliers:
-        rest = [v for v in views if v not in scored]
-        scored.update((c.view, c) for c in score(rest))
-        return list(scored.values())
+    stride = max(1, cfg.search_stride)
+    scored: dict[ViewParams, CoarseScore] = {}
+    for phase in range(stride):  # sparse passes until one view shows clear overlap
+        batch = [v for v in seed_views(views, stride, phase) if v not in scored]
+        scored.update((c.view, c) for c in score(batch))
+        if rank_views(list(scored.values()))[0].inliers >= cfg.search_min_inliers:
+            break
     nb = grid_neighbours(views)
     while True:
         top = rank_views(list(scored.values()))[:max(1, cfg.search_refine_top)]
