@@ -75,6 +75,11 @@ class CoarseConfig:
     """Coarse-to-fine: below this many RANSAC inliers in the best view of a sparse pass the side
     shows no clear overlap yet (random ORB matches reach ~10) and the next pass (the next
     longitudes) is scored; after `search_stride` passes every view is, as in "grid"."""
+    settle_targeted: bool = True
+    """When the reference is undecided and the first side's best view says the *other* image is
+    the reference (`reference.settle_reference`), search that image only on the grid views
+    nearest the viewpoint change the view's homography implies (`AdaptiveConfig.targeted_views`,
+    the full search when none reaches `accept_inliers` / 2), not on its whole grid."""
     search_min_views: int = 20
     """Coarse-to-fine only for view lists of at least this many distinct ORB views (the main
     grid has 43); shorter lists, such as the adaptive path's targeted views, are scored in full."""

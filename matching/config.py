@@ -100,7 +100,7 @@ class MatcherConfig:
         """A plain reading of the paper: Eq. 1 reference, most-matches ranking, no blur, no escalation."""
         return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
                              coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0,
-                                                     search="grid"),
+                                                     search="grid", settle_targeted=False),
                              fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
                              escalation=EscalationConfig(enabled=False), adaptive=False)
 
@@ -123,7 +123,7 @@ class MatcherConfig:
         where the sparse first pass finds nothing."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15),
-                             adaptive=False, coarse=CoarseConfig(search="grid"))
+                             adaptive=False, coarse=CoarseConfig(search="grid", settle_targeted=False))
 
     @staticmethod
     def from_overrides(**kw: Any) -> MatcherConfig:
