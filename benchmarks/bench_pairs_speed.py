@@ -25,6 +25,7 @@ import argparse
 import statistics
 from pathlib import Path
 
+from matching.memory import return_large_buffers_to_os
 from matching.registry import get_matcher
 from recon.eval.bench_pairs import DEFAULT_TH, discover_pairs, load_gray, print_report, run_bench, run_pair
 
@@ -76,6 +77,7 @@ def main() -> None:
     ap.add_argument("--no-warmup", action="store_true",
                     help="do not match the first pair once per method (untimed) before the run")
     args = ap.parse_args()
+    return_large_buffers_to_os()  # as the recon CLI does: the peak MB column is comparable with `recon bench pairs`
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     matchers = {}
     for m in methods:
