@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .geometry import homography_jacobian
+from .geometry import homography_jacobian, image_centre
 from .types import ViewParams
 
 Path = Literal["originals", "targeted", "full"]
@@ -124,6 +124,18 @@ def estimate_viewpoint(H_1_from_0: NDArray[np.float64] | None, inliers0: NDArray
     J = homography_jacobian(H, pts_ref.mean(axis=0))
     tilt, phi = tilt_and_longitude(J)
     return ViewpointEstimate(n, hull_spread(pts_ref, size_ref), tilt, phi)
+
+
+def viewpoint_at_centre(H_1_from_0: NDArray[np.float64], reference: int,
+                        size_ref: tuple[int, int]) -> tuple[float, float]:
+    """(t, phi in degrees) of the homography's local affine at image `reference`'s centre, in
+    that image's frame (the image that would be simulated; `size_ref` = its (w, h)): where a
+    coarse view's homography says the other image is the reference, the grid views near this
+    viewpoint are the ones to search there (`matching.context.MatchContext.coarse_near`)."""
+    H = np.asarray(H_1_from_0, np.float64)
+    if reference == 1:
+        H = np.asarray(np.linalg.inv(H), np.float64)
+    return tilt_and_longitude(homography_jacobian(H, image_centre(size_ref)))
 
 
 def plan_pair(estimate: ViewpointEstimate | None, cfg: AdaptiveConfig, why_none: str = "") -> PathPlan:

@@ -102,7 +102,8 @@ class MatcherConfig:
     def paper() -> MatcherConfig:
         """A plain reading of the paper: Eq. 1 reference, most-matches ranking, no blur, no escalation."""
         return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
-                             coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0),
+                             coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0,
+                                                     search="grid", settle_targeted=False),
                              fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
                              escalation=EscalationConfig(enabled=False), adaptive=False,
                              refine=RefineConfig(enabled=False))
@@ -124,11 +125,16 @@ class MatcherConfig:
 
         No patch refinement either: on fountain_P11 it raised the reprojection error (0.651 ->
         0.711 px) at an equal rotation error (0.233° / 0.234°), though it helped the rendered corner
-        (0.041° -> 0.033°); `--set matcher.refine.enabled=true` turns it on (docs/decisions.md)."""
+        (0.041° -> 0.033°); `--set matcher.refine.enabled=true` turns it on (docs/decisions.md).
+
+        The coarse search scores the full grid too (`CoarseConfig.search`): the coarse-to-fine
+        search was measured on planar pairs only, and a scene pair's second surface may peak
+        where the sparse first pass finds nothing."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,
                                                          steep=SteepConfig(enabled=False)),
-                             adaptive=False, refine=RefineConfig(enabled=False))
+                             adaptive=False, refine=RefineConfig(enabled=False),
+                             coarse=CoarseConfig(search="grid", settle_targeted=False))
 
     @staticmethod
     def from_overrides(**kw: Any) -> MatcherConfig:

@@ -10,6 +10,7 @@ Index conventions: `names[0]`, `names[1]` are the pair's images 0 and 1; an atte
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor
@@ -20,7 +21,8 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from .coarse import coarse_search
+from .adaptive import nearest_views, viewpoint_at_centre
+from .coarse import coarse_search, rank_views
 from .config import MatcherConfig
 from .fine import FineMatches
 from .store import FeatureStore
@@ -75,6 +77,21 @@ class MatchContext:
             self.coarse[side] = coarse_search(self.store, self.names[side], self.names[1 - side], self.views,
                                               self.cfg.coarse, self.pool, self.cfg.seed)
         return self.coarse[side]
+
+    def coarse_near(self, side: int, H_1_from_0: NDArray[np.float64]) -> list[CoarseScore]:
+        """The coarse search of image `side` on the `paths.targeted_views` grid views nearest the
+        viewpoint change `H_1_from_0` implies at its centre (`adaptive.viewpoint_at_centre`), kept
+        as that side's search when its best view has >= `coarse.accept_inliers` / 2 RANSAC
+        inliers; else (or already searched) `coarse_for(side)`."""
+        if side not in self.coarse:
+            t, phi = viewpoint_at_centre(H_1_from_0, side, self.size(side))
+            if math.isfinite(t):
+                views = nearest_views(self.views, t, phi, self.cfg.paths.targeted_views)
+                scores = coarse_search(self.store, self.names[side], self.names[1 - side], views,
+                                       self.cfg.coarse, self.pool, self.cfg.seed)
+                if scores and rank_views(scores)[0].inliers >= self.cfg.coarse.accept_inliers // 2:
+                    self.coarse[side] = scores
+        return self.coarse_for(side)
 
     def coarse_inliers(self) -> int:
         """The most ORB RANSAC inliers of any coarse view searched so far (evidence of overlap)."""

@@ -82,7 +82,8 @@ class ExtraAffineMatcher:
         if best is None:
             with ctx.timed("coarse"):
                 ctx.reference = settle_reference(decision, ctx.coarse_for, ctx.size(0), cfg.reference,
-                                                 cfg.coarse.accept_inliers)
+                                                 cfg.coarse.accept_inliers,
+                                                 ctx.coarse_near if cfg.coarse.settle_targeted else None)
             with ctx.timed("fine"):
                 best = max_verified(ctx.fallen_through, fast_path(ctx))
         escalation = ""

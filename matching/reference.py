@@ -168,7 +168,8 @@ def choose_reference(feat0: Features, feat1: Features, cfg: ReferenceConfig = Re
 
 
 def settle_reference(decision: ReferenceDecision, coarse_for: Callable[[int], list[CoarseScore]],
-                     image0_size: tuple[int, int], cfg: ReferenceConfig, accept_inliers: int) -> int:
+                     image0_size: tuple[int, int], cfg: ReferenceConfig, accept_inliers: int,
+                     coarse_near: Callable[[int, NDArray[np.float64]], list[CoarseScore]] | None = None) -> int:
     """The side to simulate, after the coarse search (step 2 of the module doc).
 
     `coarse_for(side)` runs (or returns the cached) coarse search with image `side` simulated.
@@ -176,9 +177,12 @@ def settle_reference(decision: ReferenceDecision, coarse_for: Callable[[int], li
     is searched first; if its best view is verified (>= `accept_inliers` / 2 RANSAC inliers),
     that view's homography gives `scale_1_from_0`, the larger image (by > `scale_tolerance`)
     becomes the reference and the first side stays when the scales are about equal;
-    `decision` is updated in place (reference and reason). With no verified view both sides are
-    searched and the one whose best view scores higher is returned, `decision` left undecided
-    (`reason_for` then says "by coarse score").
+    `decision` is updated in place (reference and reason). When that makes the other side the
+    reference and `coarse_near(side, H_1_from_0)` is given, it searches that side near the
+    viewpoint the view's homography implies instead of `coarse_for`
+    (`CoarseConfig.settle_targeted`). With no verified view both sides are searched and the one
+    whose best view scores higher is returned, `decision` left undecided (`reason_for` then says
+    "by coarse score").
     """
     if decision.reference is not None:
         coarse_for(decision.reference)
@@ -192,7 +196,10 @@ def settle_reference(decision: ReferenceDecision, coarse_for: Callable[[int], li
             scale = 1.0
         larger = larger_image(scale, cfg.scale_tolerance)
         chosen = first if larger is None else larger
-        coarse_for(chosen)
+        if chosen != first and coarse_near is not None:
+            coarse_near(chosen, H if first == 0 else np.asarray(np.linalg.inv(H), np.float64))
+        else:
+            coarse_for(chosen)
         decision.reference = chosen
         decision.reason += (f"; coarse view geometry: image 0 maps {scale:.2f}x into image 1 at its centre, "
                             f"so image {chosen} is the reference")

@@ -35,7 +35,8 @@ def test_graf_1_4_precision_above_90_percent(shared_data):
     assert rep.precision >= 0.90
     assert result.reference == 0  # the frontal image 1 is the closer, more detailed view
     assert result.best_view is not None and result.best_view.t > 1.0  # a tilted view won
-    assert len(result.coarse_scores) == 45
+    # the coarse-to-fine search (CoarseConfig.search) scores part of the 45-view grid
+    assert 20 <= len(result.coarse_scores) < 45
     assert result.escalation == ""
     assert {"reference", "coarse", "fine", "total"} <= set(result.timings)
 

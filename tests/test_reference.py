@@ -84,6 +84,16 @@ class _Coarse:
         return self.by_side[side]
 
 
+def _graf_store(folder, *names: str):
+    from matching.io import load_gray
+    from matching.store import FeatureStore
+
+    store = FeatureStore()
+    for n in names:
+        store.add_image(n, load_gray(folder / f"{n}.png"))
+    return store
+
+
 def _view(inliers: int, H: np.ndarray | None, score: float | None = None, t: float = 2.0) -> CoarseScore:
     return CoarseScore(ViewParams(t, 0.0, 1.0), inliers + 10, inliers, float(inliers if score is None else score), H)
 
@@ -121,6 +131,48 @@ def test_an_undecided_reference_is_settled_by_the_first_sides_verified_view(firs
     assert set(coarse.searched) == searched and d.reference == expected
     assert f"so image {expected} is the reference" in d.reason and "coarse view geometry" in d.reason
     assert reason_for(d, expected) == d.reason
+
+
+def test_the_other_side_is_searched_near_the_first_sides_view_when_given_coarse_near():
+    """(0, H 2x): image 1 is larger, so its side is searched, through `coarse_near` with the
+    view's homography as image 0 -> image 1 (the first side's own map), not through `coarse_for`."""
+    H = _zoom_about_centre(2.0)
+    coarse = _Coarse({0: [_view(25, H)], 1: [_view(5, None)]})
+    near: list[tuple[int, np.ndarray]] = []
+    d = _undecided()
+    assert settle_reference(d, coarse, SIZE0, ReferenceConfig(), 40, lambda s, H10: near.append((s, H10)) or []) == 1
+    assert coarse.searched == [0] and [s for s, _ in near] == [1]
+    np.testing.assert_allclose(near[0][1], H)
+    # first side 1: its view maps image 1 -> image 0, handed over inverted (image 0 -> image 1)
+    coarse = _Coarse({1: [_view(25, _zoom_about_centre(2.0))], 0: [_view(5, None)]})
+    near.clear()
+    assert settle_reference(_undecided(1.0, 2.0), coarse, SIZE0, ReferenceConfig(), 40,
+                            lambda s, H10: near.append((s, H10)) or []) == 0
+    np.testing.assert_allclose(near[0][1], _zoom_about_centre(0.5), atol=1e-12)
+
+
+def test_graf_1_5_settles_image_1_from_image_5s_view_and_searches_only_views_near_it(shared_data):
+    """graf 1-5: 10 mutual SIFT matches leave the reference undecided, Eq. 1 prefers image 5,
+    whose best view (31 ORB inliers) says image 1 is the reference; image 1 is then searched on
+    the 6 views nearest the tilt that view implies, and they hold the full grid's two best."""
+    from matching.coarse import CoarseConfig, coarse_search, rank_views
+    from matching.config import MatcherConfig
+    from matching.fine import select_fine_views
+    from matching.matcher import ExtraAffineMatcher, decide_reference
+
+    g = shared_data / "oxford" / "graf"
+    m = ExtraAffineMatcher(MatcherConfig(workers=1))
+    store = _graf_store(g, "img1", "img5")
+    ctx = m.context(store, "img1", "img5")
+    decision = decide_reference(ctx)
+    assert decision.reference is None and decision.f1 > decision.f0
+    cfg = m.cfg
+    ref = settle_reference(decision, ctx.coarse_for, ctx.size(0), cfg.reference, cfg.coarse.accept_inliers,
+                           ctx.coarse_near)
+    assert ref == 0 and set(ctx.coarse) == {0, 1}
+    assert len(ctx.coarse[0]) == cfg.paths.targeted_views
+    full = coarse_search(store, "img1", "img5", m.views, CoarseConfig(search="grid"))
+    assert select_fine_views(rank_views(ctx.coarse[0]), 2) == select_fine_views(rank_views(full), 2)
 
 
 def test_without_a_verified_view_both_sides_are_searched_and_the_better_one_wins():

@@ -1,0 +1,106 @@
+"""Pair benchmark with the extra-affine matcher before and after the coarse-stage savings of
+issue 11 ("cheaper views"), side by side in one process:
+
+    PYTHONPATH=. python benchmarks/bench_pairs_speed.py ../shared/data \
+        --json benchmarks/results/pairs.json [--methods extra-affine,extra-affine-grid,asift] [--only graf]
+
+Methods (interleaved per pair, so every method of a pair runs under the same machine load):
+
+* `extra-affine`: the default `MatcherConfig()` (coarse-to-fine (t, phi) search, the undecided
+  reference's second side searched near the first side's view);
+* `extra-affine-grid`: the same with `coarse.search="grid"` and `coarse.settle_targeted=False`,
+  i.e. the matcher as it was before (every view of the 45-view grid on every searched side);
+* `sift`, `orb`, `asift`, `aorb`: the baselines of `recon bench pairs` (stock 5 px RANSAC).
+
+Each method first matches the first pair once, untimed (thread pools, lazy imports and
+OpenCV's first calls would otherwise be charged to whichever method runs first; `--no-warmup`).
+Prints `recon bench pairs`' table and summary, then the ratio lines: each extra-affine variant's
+median seconds against ASIFT's over all pairs and over graf alone, and after / before per pair.
+Rows are the same as `recon bench pairs --json` writes (one per pair and method).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+from matching.memory import return_large_buffers_to_os
+from matching.registry import get_matcher
+from recon.eval.bench_pairs import DEFAULT_TH, discover_pairs, load_gray, print_report, run_bench, run_pair
+
+VARIANTS = {
+    "extra-affine": {},
+    "extra-affine-grid": {"coarse__search": "grid", "coarse__settle_targeted": False},
+}
+
+
+def median_seconds(rows: list[dict], method: str, dataset: str | None = None) -> float | None:
+    """Median seconds of `method` over its rows (of `dataset` only, when given)."""
+    s = [r["seconds"] for r in rows if r["method"] == method and (dataset is None or r["dataset"] == dataset)]
+    return statistics.median(s) if s else None
+
+
+def ratio_lines(rows: list[dict]) -> list[str]:
+    """"X: median s over all pairs / graf, N x faster than asift" per extra-affine variant, and
+    the per-pair after / before seconds."""
+    lines = []
+    for m in VARIANTS:
+        for dataset, label in ((None, "all pairs"), ("oxford", "graf")):
+            ours, base = median_seconds(rows, m, dataset), median_seconds(rows, "asift", dataset)
+            if ours is None:
+                continue
+            line = f"{m} on {label}: median {ours:.2f} s"
+            if base:
+                line += f", asift {base:.2f} s: {base / ours:.2f} x faster than asift"
+            lines.append(line)
+    after = {r["pair"]: r for r in rows if r["method"] == "extra-affine"}
+    before = {r["pair"]: r for r in rows if r["method"] == "extra-affine-grid"}
+    for pair in after:
+        if pair in before and after[pair]["seconds"] > 0:
+            a, b = after[pair], before[pair]
+            counts = ("identical" if (a["points"], a["correct"]) == (b["points"], b["correct"])
+                      else f"{b['points']}/{b['correct']} -> {a['points']}/{a['correct']}")
+            lines.append(f"{pair}: {b['seconds']:.2f} s -> {a['seconds']:.2f} s "
+                         f"({b['seconds'] / a['seconds']:.2f} x), points / correct {counts}")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data_root", type=Path)
+    ap.add_argument("--methods", default="extra-affine,extra-affine-grid,asift",
+                    help="comma-separated: extra-affine, extra-affine-grid, sift, orb, asift, aorb")
+    ap.add_argument("--json", type=Path, default=None, help="write the rows here")
+    ap.add_argument("--only", default=None, help="only pairs whose name contains this text")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-warmup", action="store_true",
+                    help="do not match the first pair once per method (untimed) before the run")
+    args = ap.parse_args()
+    return_large_buffers_to_os()  # as the recon CLI does: the peak MB column is comparable with `recon bench pairs`
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    matchers = {}
+    for m in methods:
+        if m in VARIANTS:
+            matchers[m] = get_matcher("extra-affine", seed=args.seed, **VARIANTS[m])
+        else:
+            matchers[m] = get_matcher(m, seed=args.seed)
+    pairs = discover_pairs(args.data_root)
+    if args.only:
+        pairs = [p for p in pairs if args.only.lower() in p.name.lower()]
+    if not pairs:
+        raise SystemExit(f"{args.data_root}: no ground-truth pairs")
+    if not args.no_warmup:  # thread pools, lazy imports and OpenCV's first calls: not the first pair's cost
+        img0, img1 = load_gray(pairs[0].path0), load_gray(pairs[0].path1)
+        for m in methods:
+            run_pair(pairs[0], img0, img1, m, matchers[m])
+    rows = run_bench(pairs, methods, th=DEFAULT_TH, json_path=args.json, matchers=matchers)
+    print_report(rows, th=DEFAULT_TH)
+    for line in ratio_lines(rows):
+        print(line)
+    if args.json is not None:
+        print(f"wrote {len(rows)} rows to {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""Where one pair's matching time goes: CPU seconds per primitive of the extra-affine matcher.
+
+    PYTHONPATH=. python benchmarks/profile_pair.py ../shared/data "graf 1-3,graf 1-5" \
+        [--set coarse__search=grid --set coarse__settle_targeted=false]
+
+Runs the matcher single-threaded (`workers=1`, so the per-stage figures add up) on each named
+pair of `recon.eval.bench_pairs.discover_pairs` twice (the first run warms up, the second is
+reported) and prints the matcher's own stage timings (wall seconds) and the process CPU seconds
+spent in each primitive, wrapped where the stages call it: SIFT / ORB detection, view warping
+(`views.simulate`), the canvas-edge filter, L2 / Hamming ratio matching, RANSAC homographies and
+the guided round, with the number of calls (e.g. ORB calls = coarse views scored + the target).
+CPU seconds are steadier than wall seconds on a loaded machine; OpenCV's own threads count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import functools
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+
+import matching.coarse as coarse
+import matching.features as features
+import matching.fine as fine
+import matching.guided as guided
+import matching.matching_utils as mu
+import matching.reference as reference
+import matching.strategies as strategies
+import matching.viewfeatures as viewfeatures
+import matching.views as views
+from matching.matcher import ExtraAffineMatcher, MatcherConfig
+from recon.eval.bench_pairs import discover_pairs, load_gray, run_pair
+
+CPU: dict[str, float] = collections.defaultdict(float)
+CALLS: collections.Counter[str] = collections.Counter()
+
+
+def _wrap(fn, label, detail=None):
+    @functools.wraps(fn)
+    def timed(*a, **k):
+        name = label if detail is None else f"{label}:{detail(*a, **k)}"
+        t = time.process_time()
+        try:
+            return fn(*a, **k)
+        finally:
+            CPU[name] += time.process_time() - t
+            CALLS[name] += 1
+    return timed
+
+
+def instrument() -> None:
+    """Wrap the primitives in every module that calls them (they are imported by name)."""
+    det = _wrap(features.detect, "detect", lambda img, cfg, mask=None: cfg.name)
+    viewfeatures.detect = det
+    viewfeatures.simulate = _wrap(views.simulate, "warp views")
+    viewfeatures.away_from_canvas_edge = _wrap(viewfeatures.away_from_canvas_edge, "canvas-edge filter")
+    rm = _wrap(mu.ratio_match, "ratio match",
+               lambda a, b, norm, *x, **k: "hamming" if norm == cv2.NORM_HAMMING else "L2")
+    coarse.ratio_match = fine.ratio_match = reference.ratio_match = rm
+    rh = _wrap(mu.ransac_homography, "RANSAC homography")
+    coarse.ransac_homography = strategies.ransac_homography = reference.ransac_homography = rh
+    guided.ransac_homography = rh
+    guided.guided_match = _wrap(fine.guided_match, "guided match")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data_root", type=Path)
+    ap.add_argument("pairs", help='comma-separated pair names, e.g. "graf 1-3,graf 1-5"')
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION__FIELD=VALUE",
+                    help="a MatcherConfig override (MatcherConfig.from_overrides), repeatable")
+    args = ap.parse_args()
+    overrides: dict[str, Any] = {}
+    for kv in args.set:
+        key, _, raw = kv.partition("=")
+        overrides[key] = {"true": True, "false": False}.get(raw.lower(), raw)
+    instrument()
+    by_name = {p.name: p for p in discover_pairs(args.data_root)}
+    matcher = ExtraAffineMatcher(MatcherConfig.from_overrides(workers=1, **overrides))
+    for name in [n.strip() for n in args.pairs.split(",")]:
+        if name not in by_name:
+            raise SystemExit(f"no pair {name!r}; pairs: {', '.join(by_name)}")
+        pair = by_name[name]
+        img0, img1 = load_gray(pair.path0), load_gray(pair.path1)
+        run_pair(pair, img0, img1, "extra-affine", matcher)
+        CPU.clear()
+        CALLS.clear()
+        c0 = time.process_time()
+        row = run_pair(pair, img0, img1, "extra-affine", matcher)
+        cpu = time.process_time() - c0
+        stages = ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items())
+        print(f"{name}: path {row['path']}, {row['points']} points at {100 * row['precision']:.2f} %, "
+              f"{cpu:.2f} CPU s; stages (wall s): {stages}")
+        for k, v in sorted(CPU.items(), key=lambda kv: -kv[1]):
+            print(f"    {k:28s} {v:6.3f} CPU s  {100 * v / cpu:5.1f} %  ({CALLS[k]} calls)")
+
+
+if __name__ == "__main__":
+    main()
