@@ -148,6 +148,10 @@ class TracksConfig:
     merge_px: float = field(default=2.0, metadata={"flag": "--merge-px"})
     """Keypoint merge radius in working px (0 = no merging)."""
 
+    consistent: bool = True
+    """Drop the matches that would put two keypoints of one image into one track (greedy, most
+    trusted first: `recon.core.tracks.consistent_tracks`); false keeps every merged match."""
+
     def __post_init__(self) -> None:
         import math
 
