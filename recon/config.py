@@ -152,6 +152,11 @@ class TracksConfig:
     """Drop the matches that would put two keypoints of one image into one track (greedy, most
     trusted first: `recon.core.tracks.consistent_tracks`); false keeps every merged match."""
 
+    trust_px: float = 4.0
+    """Distance from the pair's epipolar lines (working px, scaled to full resolution as the verify
+    stage scales its threshold) within which a match counts as trusted and goes first in the
+    consistency check (`recon.core.tracks.epipolar_inliers`)."""
+
     def __post_init__(self) -> None:
         import math
 
@@ -159,6 +164,9 @@ class TracksConfig:
                 or not (self.merge_px >= 0 and math.isfinite(self.merge_px)):
             raise UserError(f"--merge-px {self.merge_px}: must be >= 0 (0 disables merging)")
         self.merge_px = float(self.merge_px)
+        if not (isinstance(self.trust_px, (int, float)) and not isinstance(self.trust_px, bool) and self.trust_px > 0):
+            raise UserError(f"tracks.trust_px {self.trust_px}: must be > 0")
+        self.trust_px = float(self.trust_px)
 
 
 @dataclass

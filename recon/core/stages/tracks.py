@@ -5,8 +5,8 @@ merged matches of each pair) and `keypoints` (per image, full-resolution pixels)
 one image closer than `tracks.merge_px` working-resolution pixels become one, so a 3D point
 can be seen in more than two images. With `tracks.consistent` (the default) the matches that
 would chain two keypoints of one image into one track are then dropped, most trusted first
-(`recon.core.tracks.consistent_tracks`; trust = fitting the pair's fundamental matrix within the
-verify stage's threshold, `epipolar_inliers`). Key: none, it always runs (seconds); its output is
+(`recon.core.tracks.consistent_tracks`; trust = fitting the pair's fundamental matrix within
+`tracks.trust_px`, `epipolar_inliers`). Key: none, it always runs (seconds); its output is
 the content the database stage's key is built from. `report.merge` gets the merge counts, the
 dropped conflicts and the share of observations in inconsistent tracks before the check.
 """
@@ -41,7 +41,7 @@ class Tracks:
         nk = {n: len(k) for n, k in merged.keypoints.items()}
         before = track_stats(nk, merged.pairs, merged.matches)["inconsistent_share"]
         if run.cfg.tracks.consistent:
-            max_error_px = run.cfg.verify.max_error_px * min(max(run.px_scale(), 1.0), 3.0)  # as the verify stage
+            max_error_px = run.cfg.tracks.trust_px * min(max(run.px_scale(), 1.0), 3.0)  # scaled as the verify stage
             merged = consistent_tracks(merged, epipolar_inliers(merged, max_error_px, run.cfg.seed))
         data.merged = merged
         data.keypoints = {n: merged.keypoints.get(n, np.zeros((0, 2), np.float32)) for n in scene.names}
