@@ -312,3 +312,13 @@ def test_real_scene_matches_give_consistent_tracks():
     kept = sum(len(m) for m in ct.matches)
     assert kept == sum(len(m) for m in mt.matches) - ct.stats.dropped_conflicts
     assert 0 < ct.stats.dropped_conflicts <= 0.05 * kept
+
+
+def test_tracks_config_checks_trust_px():
+    from recon.config import TracksConfig
+    from recon.errors import UserError
+
+    assert TracksConfig().consistent is True and TracksConfig(trust_px=2).trust_px == 2.0
+    for bad in (0, -1.0, True):
+        with pytest.raises(UserError, match="trust_px"):
+            TracksConfig(trust_px=bad)
