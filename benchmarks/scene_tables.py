@@ -6,7 +6,9 @@ One row per scene and method: registered images, median relative rotation error 
 ground truth, median camera-centre error after the similarity alignment (relative to the
 scene's camera spread), and the median COLMAP-verified inliers over the pairs of neighbouring
 views (adjacent in name order: the rendered arcs name their views in azimuth order) and over
-the wider pairs. Pairs a method did not verify count as 0, so a method that loses pairs shows it.
+the wider pairs (pairs a method did not verify count as 0, so a method that loses pairs shows
+it), and the share of the verified match graph's observations in inconsistent tracks (two
+keypoints of one image in one track; '-' for results written before it was measured).
 """
 
 from __future__ import annotations
@@ -29,10 +31,18 @@ def inliers_by_neighbourhood(pairs: list[dict]) -> tuple[float, float]:
     return med(near), med(wide)
 
 
+def inconsistent_share(m: dict) -> float | None:
+    """Observations in tracks with two keypoints of one image (ours: `tracks.merged`, stock:
+    `tracks.graph`), or None when not measured."""
+    tracks = m.get("tracks") or {}
+    v = (tracks.get("merged") or tracks.get("graph") or {}).get("inconsistent_share")
+    return None if v is None else float(v)
+
+
 def rows(data: dict) -> list[str]:
     out = ["| scene (views) | method | registered | rel. rot. err. median | centre err. (rel.) | "
-           "median verified inliers, neighbours / wider pairs | 3D points | total s |",
-           "|---|---|---|---|---|---|---|---|"]
+           "median verified inliers, neighbours / wider pairs | inconsistent tracks (obs.) | 3D points | total s |",
+           "|---|---|---|---|---|---|---|---|---|"]
     for res in data["scenes"]:
         scene = Path(res["scene"]).name
         first = True
@@ -43,9 +53,11 @@ def rows(data: dict) -> list[str]:
             cen = m.get("center_err_rel_median")
             label = "extra-affine" if name == "extra_affine" else name.replace("-", " ")
             secs = m.get("seconds_total")
+            inc = inconsistent_share(m)
             out.append(f"| {scene + ' (' + str(m.get('num_images', 0)) + ')' if first else ''} | {label} | {reg} | "
                        f"{'-' if rot is None else f'{rot:.2f}°'} | {'-' if cen is None else f'{100 * cen:.2f} %'} | "
-                       f"{near:.0f} / {wide:.0f} | {m.get('num_points3D', 0)} | "
+                       f"{near:.0f} / {wide:.0f} | {'-' if inc is None else f'{100 * inc:.1f} %'} | "
+                       f"{m.get('num_points3D', 0)} | "
                        f"{'-' if secs is None else f'{secs:.1f}'} |")
             first = False
     return out

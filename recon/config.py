@@ -148,6 +148,16 @@ class TracksConfig:
     merge_px: float = field(default=2.0, metadata={"flag": "--merge-px"})
     """Keypoint merge radius in working px (0 = no merging)."""
 
+    consistent: bool = True
+    """Drop the matches that would put two keypoints of one image into one track (greedy, most
+    trusted first: `recon.core.tracks.consistent_tracks`); false keeps every merged match."""
+
+    trust_px: float = 1.0
+    """Distance from the pair's epipolar lines (working px, scaled to full resolution as the verify
+    stage scales its threshold) within which a match counts as trusted and goes first in the
+    consistency check (`recon.core.tracks.epipolar_inliers`). 1 px measured a little better than the
+    verify stage's 4 px (castle_P30 reprojection error 1.174 against 1.198 px, docs/decisions.md)."""
+
     def __post_init__(self) -> None:
         import math
 
@@ -155,6 +165,9 @@ class TracksConfig:
                 or not (self.merge_px >= 0 and math.isfinite(self.merge_px)):
             raise UserError(f"--merge-px {self.merge_px}: must be >= 0 (0 disables merging)")
         self.merge_px = float(self.merge_px)
+        if not (isinstance(self.trust_px, (int, float)) and not isinstance(self.trust_px, bool) and self.trust_px > 0):
+            raise UserError(f"tracks.trust_px {self.trust_px}: must be > 0")
+        self.trust_px = float(self.trust_px)
 
 
 @dataclass

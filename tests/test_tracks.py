@@ -1,10 +1,21 @@
-"""Keypoint merging into multi-view tracks (recon.core.tracks) on synthetic keypoints."""
+"""Keypoint merging into multi-view tracks and the consistency check (recon.core.tracks), on synthetic
+keypoints and on real castle_P30 matches."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from recon.core.tracks import PairMatches, _leader_cluster, connected_components, merge_tracks, track_stats
+from recon.core.tracks import (
+    PairMatches,
+    _leader_cluster,
+    connected_components,
+    consistent_tracks,
+    epipolar_inliers,
+    merge_tracks,
+    track_stats,
+)
+from shared_paths import SHARED_DATA
 
 
 def _three_view_pairs(n=60, noise=0.3, seed=0):
@@ -192,3 +203,122 @@ def test_track_stats_separate_a_giant_inconsistent_component():
     assert st["consistent_mean_length"] == 3.0
     assert st["inconsistent_share"] == 4 / (3 * n + 4)
     assert st["mean_length"] == (3 * n + 4) / (n + 1)
+
+
+def _chained_views(offset_px=6.0):
+    """Ten 3-view tracks over A, B, C, plus one point that A's keypoints in pairs (A, B) and
+    (A, C) place `offset_px` apart (beyond the merge radius): merged, B-C closes the chain
+    A0 - B - C - A1, one track with two keypoints of A. The (A, C) match of that point has the
+    worst descriptor distance."""
+    rng = np.random.default_rng(0)
+    pts = {k: rng.uniform(0, 400, (10, 2)).astype(np.float32) for k in "ABC"}
+    odd = {"A": np.array([[500.0, 500.0]], np.float32), "B": np.array([[520.0, 480.0]], np.float32),
+           "C": np.array([[540.0, 470.0]], np.float32)}
+    k = {n: np.vstack([pts[n], odd[n]]) for n in "ABC"}
+    kA_ac = k["A"].copy()
+    kA_ac[10] += [offset_px, 0.0]  # the same point, found offset_px away in pair (A, C)
+    m = np.stack([np.arange(11), np.arange(11)], 1)
+    dist = np.full(11, 10.0, np.float32)
+    worst = dist.copy()
+    worst[10] = 90.0
+    pairs = [PairMatches("A", "B", k["A"], k["B"], m, dist), PairMatches("B", "C", k["B"], k["C"], m, dist),
+             PairMatches("A", "C", kA_ac, k["C"], m, worst)]
+    return pairs
+
+
+def test_merge_alone_chains_two_keypoints_of_one_image_consistent_tracks_do_not():
+    mt = merge_tracks(_chained_views(), 2.0)
+    assert len(mt.keypoints["A"]) == 12  # the offset point stays two keypoints of A
+    st = track_stats(_nk(mt), mt.pairs, mt.matches)
+    assert st["inconsistent"] == 1 and st["inconsistent_share"] == 4 / 34  # A0-B-C-A1
+    ct = consistent_tracks(mt)
+    st = track_stats(_nk(ct), ct.pairs, ct.matches)
+    assert st["inconsistent"] == 0 and st["inconsistent_share"] == 0.0
+    assert st["num_tracks"] == 11 and st["max_length"] == 3
+    assert ct.stats.dropped_conflicts == 1 and ct.stats.num_output_matches == 32
+    # the dropped match is the worst one: the offset point's (A, C) match; the others are untouched
+    assert [len(m) for m in ct.matches] == [11, 11, 10]
+    a_far = int(np.argmin(np.linalg.norm(ct.keypoints["A"] - [506.0, 500.0], axis=1)))
+    assert a_far not in ct.matches[2][:, 0].tolist()
+    assert all(np.array_equal(x, y) for x, y in zip(ct.matches[:2], mt.matches[:2]))
+    assert ct.keypoints is mt.keypoints
+
+
+def test_consistent_tracks_prefer_trusted_matches_over_descriptor_distance():
+    mt = merge_tracks(_chained_views(), 2.0)
+    # distrust the (A, B) match of the offset point: it goes, although its distance is lowest
+    trusted = [np.ones(len(m), bool) for m in mt.matches]
+    a_near = int(np.argmin(np.linalg.norm(mt.keypoints["A"] - [500.0, 500.0], axis=1)))
+    trusted[0][mt.matches[0][:, 0] == a_near] = False
+    ct = consistent_tracks(mt, trusted)
+    assert [len(m) for m in ct.matches] == [10, 11, 11]
+    assert a_near not in ct.matches[0][:, 0].tolist()
+    assert len(ct.distances[0]) == 10 and track_stats(_nk(ct), ct.pairs, ct.matches)["inconsistent"] == 0
+
+
+def test_consistent_tracks_keep_a_clean_graph_whole():
+    pairs, _ = _three_view_pairs()
+    mt = merge_tracks(pairs, 2.0)
+    ct = consistent_tracks(mt, [np.ones(len(m), bool) for m in mt.matches])
+    assert ct.stats.dropped_conflicts == 0
+    assert all(np.array_equal(x, y) for x, y in zip(ct.matches, mt.matches))
+
+
+def test_epipolar_inliers_flag_matches_off_the_epipolar_lines():
+    """Two views of random 3D points (a real F): matches moved 30 px off are flagged, the rest fit."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-2, 2, (80, 2)), rng.uniform(4, 8, 80)]
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    R = np.array([[np.cos(0.3), 0, np.sin(0.3)], [0, 1, 0], [-np.sin(0.3), 0, np.cos(0.3)]])
+    x0 = (K @ X.T).T
+    x1 = (K @ (R @ X.T + np.array([[-1.0], [0.1], [0.2]]))).T
+    k0 = (x0[:, :2] / x0[:, 2:]).astype(np.float32)
+    k1 = (x1[:, :2] / x1[:, 2:]).astype(np.float32)
+    k1[:10] += [0.0, 30.0]  # vertical shift: off the (near-horizontal) epipolar lines
+    m = np.stack([np.arange(80), np.arange(80)], 1)
+    mt = merge_tracks([PairMatches("A", "B", k0, k1, m)], 0.0)
+    assert np.array_equal(mt.matches[0], m)  # no merging: the matcher's own indices
+    inl = epipolar_inliers(mt, 1.0)[0]
+    assert not inl[:10].any() and inl[10:].mean() > 0.95
+
+
+@pytest.mark.requires_shared("scenes/castle_P30/images")
+def test_real_scene_matches_give_consistent_tracks():
+    """Three castle_P30 photos matched as `recon run` matches them (640 px): merged alone, some
+    tracks hold two keypoints of one image (measured: 16 tracks, 4.3 % of the observations);
+    after `consistent_tracks` none does, and only those conflicting matches went."""
+    from matching.store import FeatureStore
+    from recon.core.paircache import result_to_full_res
+    from recon.core.scene import scan_scene
+    from recon.core.stages.match import make_matcher
+
+    scene, grays = scan_scene(SHARED_DATA / "scenes" / "castle_P30", max_size=640, workers=1)
+    names = ["0000.jpg", "0001.jpg", "0002.jpg"]
+    store = FeatureStore()
+    for n in names:
+        store.add_image(n, grays[n])
+    matcher = make_matcher("extra-affine", seed=0, inner_workers=1)
+    pairs = []
+    for a, b in (("0000.jpg", "0001.jpg"), ("0000.jpg", "0002.jpg"), ("0001.jpg", "0002.jpg")):
+        r = result_to_full_res(matcher.match(store, a, b), scene.image(a), scene.image(b))
+        pairs.append(PairMatches(a, b, r.kpts0, r.kpts1, r.matches, r.distances))
+    scale = 1.0 / min(scene.image(names[0]).scale_xy)  # working px -> full-resolution px
+    mt = merge_tracks(pairs, 2.0 * scale)
+    before = track_stats(_nk(mt), mt.pairs, mt.matches)
+    assert before["inconsistent"] > 0
+    ct = consistent_tracks(mt, epipolar_inliers(mt, 4.0 * min(scale, 3.0)))
+    after = track_stats(_nk(ct), ct.pairs, ct.matches)
+    assert after["inconsistent"] == 0 and after["inconsistent_share"] == 0.0
+    kept = sum(len(m) for m in ct.matches)
+    assert kept == sum(len(m) for m in mt.matches) - ct.stats.dropped_conflicts
+    assert 0 < ct.stats.dropped_conflicts <= 0.05 * kept
+
+
+def test_tracks_config_checks_trust_px():
+    from recon.config import TracksConfig
+    from recon.errors import UserError
+
+    assert TracksConfig().consistent is True and TracksConfig(trust_px=2).trust_px == 2.0
+    for bad in (0, -1.0, True):
+        with pytest.raises(UserError, match="trust_px"):
+            TracksConfig(trust_px=bad)

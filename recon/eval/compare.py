@@ -365,6 +365,20 @@ def _f(v, spec: str, none: str = "-") -> str:
     return none if v is None else format(v, spec)
 
 
+def inconsistent_share(m: dict[str, Any]) -> float | None:
+    """Share of the verified match graph's observations in tracks holding two keypoints of one
+    image (`recon.core.tracks.track_stats`): ours under `tracks.merged`, stock under
+    `tracks.graph`; None when the run did not measure it."""
+    tracks = m.get("tracks") or {}
+    graph = tracks.get("merged") or tracks.get("graph") or {}
+    v = graph.get("inconsistent_share")
+    return None if v is None else float(v)
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.1f}"
+
+
 def compare_table(res: dict[str, Any]):
     """One column per method, one row per metric, then the cloud comparison."""
     from rich.table import Table
@@ -389,6 +403,7 @@ def compare_table(res: dict[str, Any]):
     row("3D points", lambda m: str(m.get("num_points3D", 0)))
     row("mean track length", lambda m: _f(m.get("mean_track_length"), ".2f"))
     row("mean reproj. error px", lambda m: _f(m.get("mean_reprojection_error"), ".3f"))
+    row("obs. in inconsistent tracks %", lambda m: _pct(inconsistent_share(m)))
     row("verified pairs", lambda m: f"{m.get('verified_pairs', 0)}/{m.get('num_pairs', 0)}")
     row("inliers / verified pair", lambda m: _f(m.get("inliers_per_pair_mean"), ".0f"))
     stages: list[str] = []
@@ -442,7 +457,7 @@ def scenes_table(results: list[dict[str, Any]], max_size: int):
     t = Table(title=f"Scenes: recon run ({OURS}) vs stock COLMAP SIFT, max size {max_size or 'full'} px",
               header_style="bold", show_lines=False)
     for name, just in [("scene", "left"), ("method", "left"), ("registered", "right"), ("points", "right"),
-                       ("track len", "right"), ("reproj px", "right"), ("total s", "right"),
+                       ("track len", "right"), ("reproj px", "right"), ("incons. %", "right"), ("total s", "right"),
                        ("peak MB", "right"), ("rot err° med", "right"), ("AUC@5", "right"), ("AUC@10", "right"),
                        ("cloud med %", "right"), ("complete %", "right")]:
         t.add_column(name, justify=just, no_wrap=name in ("scene", "method"))  # type: ignore[arg-type]
@@ -461,17 +476,18 @@ def scenes_table(results: list[dict[str, Any]], max_size: int):
                 ccomp = f"{100 * c['completeness_ours']:.0f} / {100 * c['completeness_stock']:.0f}"
             t.add_row(scene, name, reg, str(r.get("num_points3D", 0)),
                       _f(r.get("mean_track_length"), ".2f"), _f(r.get("mean_reprojection_error"), ".2f"),
-                      _f(r.get("seconds_total"), ".1f"), _f(r.get("peak_mb"), ".0f"),
+                      _pct(inconsistent_share(r)), _f(r.get("seconds_total"), ".1f"), _f(r.get("peak_mb"), ".0f"),
                       _f(r.get("rel_rot_err_deg_median"), ".2f"), _f(r.get("auc_5"), ".3f"),
                       _f(r.get("auc_10"), ".3f"), cmed, ccomp)
         for name, q in res.get("ratios", {}).items():
             t.add_row(scene, f"[italic]{name}[/italic]", _f(q["registered"], ".2f") + "x",
-                      _f(q["points"], ".2f") + "x", _f(q["track_length"], ".2f") + "x", "",
+                      _f(q["points"], ".2f") + "x", _f(q["track_length"], ".2f") + "x", "", "",
                       _f(q["time"], ".2f") + "x", _f(q["peak_mb"], ".2f") + "x", "", "", "", "", "",
                       style="dim")
         if k < len(results) - 1:
             t.add_section()
-    t.caption = ("cloud med %: median distance of ours (aligned) to the stock cloud, % of the stock extent; "
+    t.caption = ("incons. %: observations of the verified match graph in tracks with two keypoints of one image; "
+                 "cloud med %: median distance of ours (aligned) to the stock cloud, % of the stock extent; "
                  "complete %: ours within 1 % of stock / stock within 1 % of ours")
     return t
 

@@ -3,8 +3,12 @@
 Needs: `scene`, `pairs`, `results`. Makes: `merged` (`recon.core.tracks.MergedTracks`: the
 merged matches of each pair) and `keypoints` (per image, full-resolution pixels). Keypoints of
 one image closer than `tracks.merge_px` working-resolution pixels become one, so a 3D point
-can be seen in more than two images. Key: none, it always runs (a fraction of a second); its
-output is the content the database stage's key is built from.
+can be seen in more than two images. With `tracks.consistent` (the default) the matches that
+would chain two keypoints of one image into one track are then dropped, most trusted first
+(`recon.core.tracks.consistent_tracks`; trust = fitting the pair's fundamental matrix within
+`tracks.trust_px`, `epipolar_inliers`). Key: none, it always runs (seconds); its output is
+the content the database stage's key is built from. `report.merge` gets the merge counts, the
+dropped conflicts and the share of observations in inconsistent tracks before the check.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from recon.core.context import Run
-from recon.core.tracks import PairMatches, merge_tracks
+from recon.core.tracks import PairMatches, consistent_tracks, epipolar_inliers, merge_tracks, track_stats
 
 
 class Tracks:
@@ -34,7 +38,13 @@ class Tracks:
         radius = {im.name: merge_px / min(im.scale_xy) for im in scene.images}
         merged = merge_tracks([PairMatches(a, b, r.kpts0, r.kpts1, r.matches, r.distances)
                                for (a, b), r in zip(data.pairs, data.results, strict=True)], radius)
+        nk = {n: len(k) for n, k in merged.keypoints.items()}
+        before = track_stats(nk, merged.pairs, merged.matches)["inconsistent_share"]
+        if run.cfg.tracks.consistent:
+            max_error_px = run.cfg.tracks.trust_px * min(max(run.px_scale(), 1.0), 3.0)  # scaled as the verify stage
+            merged = consistent_tracks(merged, epipolar_inliers(merged, max_error_px, run.cfg.seed))
         data.merged = merged
         data.keypoints = {n: merged.keypoints.get(n, np.zeros((0, 2), np.float32)) for n in scene.names}
-        run.report.merge = {**merged.stats.to_dict(), "merge_px": merge_px}
+        run.report.merge = {**merged.stats.to_dict(), "merge_px": merge_px, "consistent": run.cfg.tracks.consistent,
+                            "inconsistent_share_merged": before}
         return None

@@ -1,0 +1,54 @@
+"""The scene benchmark tables report the share of observations in inconsistent tracks
+(`benchmarks/scene_tables.py` for the README, `recon.eval.compare.scenes_table` / `compare_table`
+for the console)."""
+
+from __future__ import annotations
+
+import importlib.util
+
+from rich.console import Console
+
+from recon.eval.compare import compare_table, inconsistent_share, scenes_table
+from shared_paths import REPO
+
+_spec = importlib.util.spec_from_file_location("scene_tables", REPO / "benchmarks" / "scene_tables.py")
+assert _spec is not None and _spec.loader is not None
+scene_tables = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(scene_tables)
+
+
+def _methods():
+    pairs = [{"image0": "a", "image1": "b", "verified_inliers": 100}]
+    ours = {"status": "ok", "registered_images": 2, "num_images": 2, "num_points3D": 10, "pairs": pairs,
+            "tracks": {"merged": {"inconsistent_share": 0.0}, "raw_merged": {"inconsistent_share": 0.5}}}
+    stock = {"status": "ok", "registered_images": 2, "num_images": 2, "num_points3D": 12, "pairs": pairs,
+             "tracks": {"graph": {"inconsistent_share": 0.0957}}}
+    old = {"status": "ok", "registered_images": 2, "num_images": 2, "pairs": pairs,
+           "tracks": {"graph": {"inconsistent": 3}}}  # written before the share was measured
+    return {"stock-default": stock, "extra_affine": ours, "stock-high": old}
+
+
+def test_inconsistent_share_reads_ours_and_stock():
+    m = _methods()
+    assert inconsistent_share(m["extra_affine"]) == 0.0  # the verified graph, not raw_merged
+    assert inconsistent_share(m["stock-default"]) == 0.0957
+    assert inconsistent_share(m["stock-high"]) is None and inconsistent_share({}) is None
+
+
+def test_readme_table_has_the_inconsistent_column():
+    lines = scene_tables.rows({"scenes": [{"scene": "/x/castle", "methods": _methods()}]})
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    col = header.index("inconsistent tracks (obs.)")
+    cells = {ln.split("|")[2].strip(): ln.strip("|").split("|")[col].strip() for ln in lines[2:]}
+    assert cells == {"stock default": "9.6 %", "extra-affine": "0.0 %", "stock high": "-"}
+    assert all(ln.count("|") == lines[0].count("|") for ln in lines)
+
+
+def test_console_tables_show_the_share():
+    res = {"scene": "/x/castle", "methods": _methods(), "config": {"max_size": 1000, "pairs": "exhaustive"}}
+    console = Console(width=250, record=True)
+    console.print(scenes_table([res], 1000))
+    console.print(compare_table(res))
+    text = console.export_text()
+    assert "incons. %" in text and "obs. in inconsistent tracks %" in text
+    assert " 9.6 " in text and " 0.0 " in text
