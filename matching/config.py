@@ -120,8 +120,15 @@ class MatcherConfig:
         meant to be best (rendered facade-wide: 0.23° instead of 0.11° relative rotation error;
         corner / corner-wide: 66-83 % of the verified inliers per pair), while they cut fountain_P11's
         matching time by half at equal accuracy; `recon run --preset adaptive` (or
-        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths")."""
+        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths").
+
+        The originals are matched with COLMAP's SIFT with affine shape and domain-size pooling
+        (`FineConfig.original_detector` = "colmap-sift", the simulated views keep OpenCV's SIFT):
+        on the rendered difficulty curve 1.27-1.37x the verified inliers per pair, at or above
+        stock `high`'s at every step, for about 2.5 s more CPU per 800x600 image
+        (docs/decisions.md, "COLMAP's covariant SIFT on the originals")."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
+                             fine=FineConfig(original_detector="colmap-sift"),
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,
                                                          steep=SteepConfig(enabled=False)),
                              adaptive=False)

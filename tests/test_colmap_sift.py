@@ -162,3 +162,15 @@ def test_multiview_matcher_with_colmap_originals_gives_correct_matches(pair_stor
     p0, p1 = res.matched_points(inliers_only=False)
     err = np.linalg.norm(_project(H, p0) - p1, axis=1)
     assert np.mean(err < 1.5) > 0.8
+
+
+def test_recon_run_matches_the_originals_with_colmap_sift_by_default():
+    from recon.config import build_run_config
+    from recon.core.stages.match import make_matcher
+
+    assert MatcherConfig.multiview().fine.original_detector == "colmap-sift"
+    assert MatcherConfig().fine.original_detector == "sift" and MatcherConfig.paper().fine.original_detector == "sift"
+    run = build_run_config()
+    assert make_matcher(run.match).cfg.fine.originals_detector.name == "colmap-sift"
+    off = build_run_config(settings=["matcher.fine.original_detector=sift"])
+    assert make_matcher(off.match).cfg.fine.originals_detector.name == "sift"
