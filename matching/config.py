@@ -124,8 +124,8 @@ class MatcherConfig:
 
         The originals are matched with COLMAP's SIFT with affine shape and domain-size pooling
         (`FineConfig.original_detector` = "colmap-sift", the simulated views keep OpenCV's SIFT):
-        on the rendered difficulty curve 1.27-1.37x the verified inliers per pair, at or above
-        stock `high`'s at every step, for about 2.5 s more CPU per 800x600 image
+        on the rendered difficulty curve 1.27-1.42x the verified inliers per pair, at or above
+        stock `high`'s at every step, for about 3 s more CPU per 800x600 image
         (docs/decisions.md, "COLMAP's covariant SIFT on the originals")."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
                              fine=FineConfig(original_detector="colmap-sift"),
