@@ -33,18 +33,16 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from .features import DetectorConfig, Features
-
 UNLIMITED = 1 << 20
-"""COLMAP's feature budget when `DetectorConfig.max_features` is 0 (COLMAP needs a positive number;
+"""COLMAP's feature budget when `max_features` is 0 (COLMAP needs a positive number;
 its own default is 8192)."""
 DESCRIPTOR_SCALE = 512.0
 """Unit-norm descriptors times this = OpenCV SIFT's L2 scale."""
 
 
-def extraction_options(cfg: DetectorConfig):  # -> pycolmap.FeatureExtractionOptions
-    """COLMAP's CPU SIFT options for `cfg`: affine shape and domain-size pooling on, L1-root
-    descriptors, no downscaling (callers pass the working-resolution image)."""
+def extraction_options(max_features: int = 0):  # -> pycolmap.FeatureExtractionOptions
+    """COLMAP's CPU SIFT options: affine shape and domain-size pooling on, L1-root descriptors, at
+    most `max_features` (0 = unlimited), no downscaling (callers pass the working-resolution image)."""
     import cv2  # noqa: F401  (cv2 before pycolmap: see the module doc)
     import pycolmap
 
@@ -52,40 +50,40 @@ def extraction_options(cfg: DetectorConfig):  # -> pycolmap.FeatureExtractionOpt
     o.use_gpu = False
     o.num_threads = 1
     o.max_image_size = UNLIMITED  # never downscale here
-    o.sift.max_num_features = int(cfg.max_features) if cfg.max_features else UNLIMITED
+    o.sift.max_num_features = int(max_features) if max_features else UNLIMITED
     o.sift.estimate_affine_shape = True
     o.sift.domain_size_pooling = True
     o.sift.normalization = pycolmap.Normalization.L1_ROOT
     return o
 
 
-def detect_colmap_sift(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] | None = None) -> Features:
-    """COLMAP's covariant SIFT of `img` (8-bit gray) as `Features` in OpenCV's pixel convention
-    (see the module doc); `mask` (uint8, nonzero = valid) keeps the keypoints whose nearest
-    pixel is valid (COLMAP has no detection mask)."""
+Frames = tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]
+"""(keypoints (N, 2) px, sizes (N,) px, angles (N,) degrees, descriptors (N, 128) float32)."""
+
+
+def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDArray[np.uint8] | None = None) -> Frames:
+    """COLMAP's covariant SIFT of `img` (8-bit gray), in OpenCV's pixel convention (see the module
+    doc): keypoints, sizes, angles and descriptors, which `matching.features.detect` wraps as
+    `Features` (this module does not import it: `features` imports this one). `mask` (uint8,
+    nonzero = valid) keeps the keypoints whose nearest pixel is valid (COLMAP has no detection mask)."""
     import pycolmap
 
     gray = np.ascontiguousarray(img, dtype=np.uint8)
     if gray.ndim != 2:
         raise ValueError(f"colmap-sift: expected a gray image (H, W), got shape {gray.shape}")
-    extractor = pycolmap.FeatureExtractor.create(extraction_options(cfg), pycolmap.Device.cpu)
+    extractor = pycolmap.FeatureExtractor.create(extraction_options(max_features), pycolmap.Device.cpu)
     kps, descs = extractor.extract_from_uint8_array(gray)
     frames = np.asarray(pycolmap.keypoints_to_matrix(kps), np.float32).reshape(-1, 4)  # x, y, scale, orientation
-    if len(frames) == 0:
-        return Features.empty(128, np.float32)
     # COLMAP stores unit-norm descriptors x 512 as uint8 (no component reaches 255 after L1-root);
     # renormalise the rounded values to exactly OpenCV's L2 scale
-    desc = np.asarray(descs.data, np.float32).reshape(len(frames), -1)
+    desc = np.asarray(descs.data, np.float32).reshape(len(frames), -1) if len(frames) else np.zeros((0, 128), np.float32)
     desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12) * DESCRIPTOR_SCALE
-    f = Features(
-        kpts=(frames[:, :2] - 0.5).astype(np.float32),
-        sizes=(2.0 * frames[:, 2]).astype(np.float32),
-        angles=np.mod(np.degrees(frames[:, 3]), 360.0).astype(np.float32),
-        descriptors=np.ascontiguousarray(desc, np.float32),
-        responses=None,
-    )
-    if mask is not None:
+    kpts = (frames[:, :2] - 0.5).astype(np.float32)
+    keep = np.ones(len(frames), bool)
+    if mask is not None and len(frames):
         h, w = mask.shape[:2]
-        xy = np.clip(np.rint(f.kpts).astype(np.int64), 0, [w - 1, h - 1])
-        f = f.subset(mask[xy[:, 1], xy[:, 0]] > 0)
-    return f
+        xy = np.clip(np.rint(kpts).astype(np.int64), 0, [w - 1, h - 1])
+        keep = mask[xy[:, 1], xy[:, 0]] > 0
+    return (kpts[keep], (2.0 * frames[keep, 2]).astype(np.float32),
+            np.mod(np.degrees(frames[keep, 3]), 360.0).astype(np.float32),
+            np.ascontiguousarray(desc[keep], np.float32))

@@ -114,7 +114,8 @@ def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] 
         from .colmap_sift import detect_colmap_sift
 
         with _sift_gate:  # one at a time, as OpenCV's SIFT (and pycolmap holds the GIL meanwhile)
-            return detect_colmap_sift(img, cfg, mask)
+            kpts, sizes, angles, desc = detect_colmap_sift(img, cfg.max_features, mask)
+        return Features(kpts, sizes, angles, desc) if len(kpts) else Features.empty(128, np.float32)
     det = make_detector(cfg)
     if cfg.name == "sift":
         with _sift_gate:
