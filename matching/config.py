@@ -129,8 +129,15 @@ class MatcherConfig:
 
         The coarse search scores the full grid too (`CoarseConfig.search`): the coarse-to-fine
         search was measured on planar pairs only, and a scene pair's second surface may peak
-        where the sparse first pass finds nothing."""
+        where the sparse first pass finds nothing.
+
+        The originals are matched with COLMAP's SIFT with affine shape and domain-size pooling
+        (`FineConfig.original_detector` = "colmap-sift", the simulated views keep OpenCV's SIFT):
+        on the rendered difficulty curve 1.27-1.42x the verified inliers per pair, at or above
+        stock `high`'s at every step, for about 3 s more CPU per 800x600 image
+        (docs/decisions.md, "COLMAP's covariant SIFT on the originals")."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
+                             fine=FineConfig(original_detector="colmap-sift"),
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,
                                                          steep=SteepConfig(enabled=False)),
                              adaptive=False, refine=RefineConfig(enabled=False),

@@ -1,4 +1,4 @@
-"""Keypoint detection and description (SIFT, ORB) with a typed config.
+"""Keypoint detection and description (SIFT, ORB, COLMAP's covariant SIFT) with a typed config.
 
 `Features` holds keypoints in the pixel frame of the image they were computed on (OpenCV
 convention); callers map them to original-image coordinates (see `matching.views`).
@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-DetectorName = Literal["sift", "orb"]
+DetectorName = Literal["sift", "orb", "colmap-sift"]
 
 
 @dataclass(frozen=True)
@@ -22,13 +22,16 @@ class DetectorConfig:
     """Which detector and its budget."""
 
     name: DetectorName = "sift"
-    """"sift" (float descriptors, L2) or "orb" (binary, Hamming)."""
+    """"sift" (OpenCV, float descriptors, L2), "orb" (binary, Hamming) or "colmap-sift" (COLMAP's SIFT
+    with affine shape estimation and domain-size pooling, `matching.colmap_sift`: RootSIFT float
+    descriptors at OpenCV's L2 scale, comparable only with its own)."""
     max_features: int = 0
-    """Feature budget; 0 = unlimited (SIFT only; ORB then keeps 1000)."""
+    """Feature budget; 0 = unlimited (SIFT and colmap-sift; ORB then keeps 1000)."""
     root_sift: bool = False
-    """L1-normalise and square-root SIFT descriptors (Arandjelovic 2012)."""
+    """L1-normalise and square-root SIFT descriptors (Arandjelovic 2012); colmap-sift's always are."""
     contrast: float = 0.04
-    """SIFT's contrast threshold (OpenCV's default 0.04; lower finds more, weaker keypoints)."""
+    """SIFT's contrast threshold (OpenCV's default 0.04; lower finds more, weaker keypoints); colmap-sift
+    keeps COLMAP's peak threshold (0.0067, about OpenCV's 0.02)."""
 
     @property
     def key(self) -> str:
@@ -79,13 +82,16 @@ def strongest(f: Features, n: int) -> Features:
 
 
 def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
-    """A fresh OpenCV detector (they are not thread-safe to share, so one per call)."""
+    """A fresh OpenCV detector (they are not thread-safe to share, so one per call); colmap-sift
+    has none (`detect` calls `matching.colmap_sift`)."""
     if cfg.name == "sift":
         return cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast)
     if cfg.name == "orb":
         # fastThreshold lowered from 20 so low-contrast simulated views still yield keypoints
         return cv2.ORB.create(nfeatures=cfg.max_features or 1000, fastThreshold=10)
-    raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift' or 'orb'")
+    if cfg.name == "colmap-sift":
+        raise ValueError("colmap-sift is not an OpenCV detector: call matching.features.detect")
+    raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift', 'orb' or 'colmap-sift'")
 
 
 _sift_gate = threading.BoundedSemaphore(1)
@@ -104,6 +110,12 @@ def set_sift_concurrency(n: int) -> None:
 
 def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] | None = None) -> Features:
     """Detect and describe `img` (8-bit gray). `mask` (uint8, nonzero = valid) limits detection."""
+    if cfg.name == "colmap-sift":
+        from .colmap_sift import detect_colmap_sift
+
+        with _sift_gate:  # one at a time, as OpenCV's SIFT (and pycolmap holds the GIL meanwhile)
+            kpts, sizes, angles, desc = detect_colmap_sift(img, cfg.max_features, mask)
+        return Features(kpts, sizes, angles, desc) if len(kpts) else Features.empty(128, np.float32)
     det = make_detector(cfg)
     if cfg.name == "sift":
         with _sift_gate:

@@ -6,6 +6,11 @@ ratio-matched against the target's SIFT. Several views (the top of the coarse se
 fused: their matches are concatenated and made one-to-one on the target side, keeping the
 closest descriptor. The paper uses a single view (`top_k = 1`).
 
+The unwarped originals (the identity view) may be matched with another detector
+(`FineConfig.original_detector`, e.g. COLMAP's covariant SIFT): its descriptors are comparable
+only with its own, so each view is matched against the target's features of the same detector
+(`TargetFeatures`), and the target keypoints of the result are the union of both sets.
+
 Also here, the matching primitives of the second, guided rounds (`matching.guided`): ratio tests
 restricted to target keypoints near a homography's prediction (`guided_match`) or within a band
 around a fundamental matrix's epipolar line (`epipolar_guided_match`).
@@ -15,17 +20,20 @@ from __future__ import annotations
 
 from concurrent.futures import Executor
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .features import DetectorConfig
+from .features import DetectorConfig, Features
 from .matching_utils import ratio_match, unique_train
 from .store import FeatureStore
 from .types import CoarseScore, ViewParams
 from .viewfeatures import original_features, view_features
 from .views import Interp, capped_view
+
+OriginalDetector = Literal["sift", "colmap-sift"]
 
 
 @dataclass(frozen=True)
@@ -48,9 +56,58 @@ class FineConfig:
     same points for less time and memory: SIFT's scale space doubles its input
     (docs/decisions.md)."""
 
+    original_detector: OriginalDetector = "sift"
+    """Detector of the unwarped originals when they are matched with each other (the identity
+    view): "sift" = the views' OpenCV SIFT (`detector`); "colmap-sift" = COLMAP's SIFT with affine
+    shape estimation and domain-size pooling (`matching.colmap_sift`, what COLMAP's `high` preset
+    extracts; RootSIFT on both sides, a few seconds per 800x600 image). The simulated views keep
+    OpenCV's SIFT against the target's OpenCV SIFT (`TargetFeatures`)."""
+
     @property
     def detector(self) -> DetectorConfig:
+        """The simulated views' detector (OpenCV SIFT)."""
         return DetectorConfig("sift", self.sift_features, self.root_sift)
+
+    @property
+    def originals_detector(self) -> DetectorConfig:
+        """The detector of the originals matched with each other (`original_detector`)."""
+        if self.original_detector == "sift":
+            return self.detector
+        return DetectorConfig("colmap-sift", self.sift_features, True)
+
+    def detector_for(self, view: ViewParams) -> DetectorConfig:
+        """The detector of `view` of the reference (and of the target features it is matched with)."""
+        return self.originals_detector if view.is_identity else self.detector
+
+
+@dataclass
+class TargetFeatures:
+    """The target original's features of every detector the fine views use, one index space:
+    `kpts` holds each detector's keypoints one block after the other, and `parts[det.key]` =
+    (that detector's features, where its block starts in `kpts`)."""
+
+    kpts: NDArray[np.float32]
+    parts: dict[str, tuple[Features, int]]
+
+    def part(self, det: DetectorConfig) -> tuple[Features, int]:
+        """(`det`'s features of the target, offset of its indices in `kpts`)."""
+        return self.parts[det.key]
+
+
+def target_features(store: FeatureStore, target: str, cfg: FineConfig) -> TargetFeatures:
+    """The target's original features for `cfg`'s detectors (`TargetFeatures`); with the default
+    `original_detector` a single block, the target's OpenCV SIFT itself."""
+    dets = {cfg.detector.key: cfg.detector, cfg.originals_detector.key: cfg.originals_detector}
+    parts: dict[str, tuple[Features, int]] = {}
+    blocks = []
+    offset = 0
+    for key, det in dets.items():
+        f = original_features(store, target, det)
+        parts[key] = (f, offset)
+        blocks.append(f.kpts)
+        offset += len(f)
+    kpts = blocks[0] if len(blocks) == 1 else np.concatenate(blocks).astype(np.float32)
+    return TargetFeatures(kpts, parts)
 
 
 @dataclass
@@ -88,16 +145,20 @@ def select_fine_views(ranked: list[CoarseScore], k: int, include_original: bool 
 
 def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParams],
                cfg: FineConfig, executor: Executor | None = None, seed: int = 0) -> FineMatches:
-    """SIFT of each view of `ref` ratio-matched against the original `target`, fused one-to-one
-    on the target side (closest descriptor wins); `seed` seeds FLANN for large sets."""
-    det = cfg.detector
-    ft = original_features(store, target, det)
-
+    """SIFT of each view of `ref` ratio-matched against the original `target` (features of the
+    view's detector, `FineConfig.detector_for`), fused one-to-one on the target side (closest
+    descriptor wins); `seed` seeds FLANN for large sets."""
+    tf = target_features(store, target, cfg)
     size = store.image(ref).shape[1::-1]
 
     def one(view: ViewParams):
+        det = cfg.detector_for(view)
         fv = view_features(store, ref, capped_view(view, size, cfg.max_area_ratio), det, cfg.interp, cfg.antialias)
+        ft, offset = tf.part(det)
         m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio, seed)
+        if offset and len(m):
+            m = m.copy()
+            m[:, 1] += offset
         return fv, m, d
 
     parts = list(executor.map(one, views)) if executor is not None and len(views) > 1 else [one(v) for v in views]
@@ -114,10 +175,10 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
             dists.append(d)
             offset += len(used)
     if not matches:
-        return FineMatches(np.zeros((0, 2), np.float32), ft.kpts, np.zeros((0, 2), np.int32),
+        return FineMatches(np.zeros((0, 2), np.float32), tf.kpts, np.zeros((0, 2), np.int32),
                            np.zeros(0, np.float32), per_view)
     m_all, d_all = unique_train(np.concatenate(matches), np.concatenate(dists))
-    return FineMatches(np.concatenate(kpts_ref), ft.kpts, m_all, d_all, per_view)
+    return FineMatches(np.concatenate(kpts_ref), tf.kpts, m_all, d_all, per_view)
 
 
 def candidate_ratio_test(rows: NDArray, cols: NDArray, dd: NDArray, ratio: float

@@ -19,20 +19,27 @@ from numpy.typing import NDArray
 
 from .context import Attempt, MatchContext
 from .features import Features
-from .fine import FineMatches, epipolar_guided_match, epipolar_pair_distance, guided_match
+from .fine import (
+    FineMatches,
+    TargetFeatures,
+    epipolar_guided_match,
+    epipolar_pair_distance,
+    guided_match,
+    target_features,
+)
 from .matching_utils import ransac_homography, unique_train
 from .types import PairResult, ViewParams
-from .viewfeatures import original_features, view_features
+from .viewfeatures import view_features
 from .views import capped_view
 
-MatchFn = Callable[[Features], tuple[NDArray[np.int32], NDArray[np.float32]]]
+MatchFn = Callable[[Features, Features], tuple[NDArray[np.int32], NDArray[np.float32]]]
 
 
 def rematch_views(ctx: MatchContext, ref: int, views: list[ViewParams], match_fn: MatchFn,
-                  first: FineMatches | None = None) -> tuple[NDArray, NDArray, NDArray]:
-    """(reference keypoints, (K, 2) matches into them and into the target's keypoints, distances)
-    of every fine view of image `ref` re-matched by `match_fn(view features) -> (matches,
-    distances)`, after `first`'s matches when given."""
+                  tf: TargetFeatures, first: FineMatches | None = None) -> tuple[NDArray, NDArray, NDArray]:
+    """(reference keypoints, (K, 2) matches into them and into `tf.kpts`, distances) of every
+    fine view of image `ref` re-matched by `match_fn(view features, target features of the same
+    detector) -> (matches, distances)`, after `first`'s matches when given."""
     fc = ctx.cfg.fine
     name = ctx.names[ref]
     size = ctx.size(ref)
@@ -44,10 +51,12 @@ def rematch_views(ctx: MatchContext, ref: int, views: list[ViewParams], match_fn
         kpts_ref, pairs, dists, offset = [first.kpts_ref], [first.matches], [first.distances], len(first.kpts_ref)
     for view in views:
         rendered = capped_view(view, size, fc.max_area_ratio)
-        fv = view_features(ctx.store, name, rendered, fc.detector, fc.interp, fc.antialias)
-        m, d = match_fn(fv)
+        det = fc.detector_for(view)
+        fv = view_features(ctx.store, name, rendered, det, fc.interp, fc.antialias)
+        ft, t_offset = tf.part(det)
+        m, d = match_fn(fv, ft)
         kpts_ref.append(fv.kpts[m[:, 0]])
-        pairs.append(np.stack([np.arange(len(m)) + offset, m[:, 1]], axis=1))
+        pairs.append(np.stack([np.arange(len(m)) + offset, m[:, 1] + t_offset], axis=1))
         dists.append(d)
         offset += len(m)
     kr = np.concatenate(kpts_ref) if kpts_ref else np.zeros((0, 2), np.float32)
@@ -73,15 +82,15 @@ def guided_homography_round(ctx: MatchContext, att: Attempt, res: PairResult) ->
     ref = att.reference
     assert res.H_1_from_0 is not None
     H_t_from_ref = res.H_1_from_0 if ref == 0 else np.asarray(np.linalg.inv(res.H_1_from_0), np.float64)
-    ft = original_features(ctx.store, ctx.names[1 - ref], cfg.fine.detector)
+    tf = target_features(ctx.store, ctx.names[1 - ref], cfg.fine)
     kr, m_all, d_all = rematch_views(
         ctx, ref, att.views,
-        lambda fv: guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, H_t_from_ref,
-                                cfg.guided_px, cfg.guided_ratio))
+        lambda fv, ft: guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, H_t_from_ref,
+                                    cfg.guided_px, cfg.guided_ratio), tf)
     if len(m_all) == 0:
         return res
     m_all, d_all = unique_train(m_all, d_all)
-    guided = Attempt("guided", ref, compact(kr, ft.kpts, m_all, d_all), att.views, att.coarse, 0)
+    guided = Attempt("guided", ref, compact(kr, tf.kpts, m_all, d_all), att.views, att.coarse, 0)
     out = ctx.to_result(guided, res.reference_reason, res.f0, res.f1)
     out.escalation = res.escalation
     p0, p1 = out.matched_points(inliers_only=False)
@@ -121,19 +130,19 @@ def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> P
     F = trusted_fundamental(ctx, fm)
     if F is None:
         return res
-    ft = original_features(ctx.store, ctx.names[1 - ref], cfg.fine.detector)
+    tf = target_features(ctx.store, ctx.names[1 - ref], cfg.fine)
     kr, m_all, d_all = rematch_views(
         ctx, ref, att.views,
-        lambda fv: epipolar_guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, F,
-                                         cfg.guided_epipolar_px, cfg.guided_epipolar_ratio),
-        first=fm)
+        lambda fv, ft: epipolar_guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, F,
+                                             cfg.guided_epipolar_px, cfg.guided_epipolar_ratio),
+        tf, first=fm)
     # one match per reference position and per target keypoint (first round wins ties: it comes first)
     key = np.c_[np.round(kr[m_all[:, 0]] * 4).astype(np.int64), m_all[:, 1].astype(np.int64)]
     _, first = np.unique(key, axis=0, return_index=True)
     m_all, d_all = m_all[np.sort(first)], d_all[np.sort(first)]
     m_all, d_all = unique_train(m_all, d_all)
-    keep = epipolar_pair_distance(F, kr[m_all[:, 0]], ft.kpts[m_all[:, 1]]) <= cfg.guided_epipolar_px
-    fm2 = compact(kr, ft.kpts, m_all[keep], d_all[keep])
+    keep = epipolar_pair_distance(F, kr[m_all[:, 0]], tf.kpts[m_all[:, 1]]) <= cfg.guided_epipolar_px
+    fm2 = compact(kr, tf.kpts, m_all[keep], d_all[keep])
     if len(fm2.matches) <= res.num_matches:
         return res
     out = ctx.to_result(Attempt("guided", ref, fm2, att.views, att.coarse, 0), res.reference_reason, res.f0, res.f1)

@@ -1,0 +1,176 @@
+"""COLMAP's covariant SIFT as a detector (`matching.colmap_sift`, DetectorConfig "colmap-sift") and
+the fine stage matching the originals with it (`FineConfig.original_detector`): keypoints in
+OpenCV's pixel convention on rendered blobs, correct matches on a rendered homography pair, the
+originals' matches indexing the target's COLMAP block, and the multi-view preset's setting."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from matching.config import MatcherConfig
+from matching.features import DetectorConfig, detect
+from matching.fine import FineConfig, fine_match, target_features
+from matching.matcher import ExtraAffineMatcher
+from matching.store import FeatureStore
+from matching.types import ViewParams
+from matching.viewfeatures import original_features
+from scenes.texture import procedural_texture
+
+COLMAP = DetectorConfig("colmap-sift")
+IDENTITY = ViewParams(1.0, 0.0, 1.0)
+
+
+def _blobs(n: int = 40, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A 400x300 image of `n` Gaussian blobs (sigma 2.5-5 px) and their centres, OpenCV convention
+    (the centre of the top-left pixel is (0, 0))."""
+    h, w = 300, 400
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    img = np.full((h, w), 60.0)
+    rng = np.random.default_rng(seed)
+    centres = []
+    for _ in range(n):
+        cx, cy, s = rng.uniform(30, w - 30), rng.uniform(30, h - 30), rng.uniform(2.5, 5.0)
+        img += 150.0 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * s * s))
+        centres.append((cx, cy))
+    return np.clip(img, 0, 255).astype(np.uint8), np.array(centres)
+
+
+def _offsets(kpts: np.ndarray, centres: np.ndarray, within: float = 1.5) -> np.ndarray:
+    """(K, 2) keypoint - centre of the keypoints within `within` px of a blob centre."""
+    d = np.linalg.norm(kpts[:, None, :] - centres[None, :, :], axis=2)
+    near = d.min(axis=1) < within
+    return kpts[near] - centres[d[near].argmin(axis=1)]
+
+
+def _pair(tilt: float = 1.6, angle: float = 20.0, size: tuple[int, int] = (360, 270)):
+    """A procedural texture and its view under a known tilted homography (H_1_from_0)."""
+    w, h = size
+    tex = procedural_texture(4.0, 3.0, 90.0, seed=3)
+    img0 = cv2.resize(cv2.cvtColor(tex, cv2.COLOR_BGR2GRAY) if tex.ndim == 3 else tex, size,
+                      interpolation=cv2.INTER_AREA)
+    c = np.array([w / 2.0, h / 2.0])
+    L = 1.1 * np.diag([1 / tilt, 1.0]) @ cv2.getRotationMatrix2D((0, 0), angle, 1.0)[:, :2]
+    H = np.eye(3)
+    H[:2, :2] = L
+    H[:2, 2] = c - L @ c
+    H[2, :2] = [2e-4, -1e-4]
+    return img0, cv2.warpPerspective(img0, H, size, flags=cv2.INTER_LINEAR), H
+
+
+def _project(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return cv2.perspectiveTransform(pts.reshape(-1, 1, 2).astype(np.float64), H).reshape(-1, 2)
+
+
+@pytest.fixture(scope="module")
+def blobs():
+    img, centres = _blobs()
+    return img, centres, detect(img, COLMAP)
+
+
+@pytest.fixture(scope="module")
+def pair_store():
+    img0, img1, H = _pair()
+    store = FeatureStore()
+    store.add_image("a", img0)
+    store.add_image("b", img1)
+    return store, H
+
+
+def test_keypoints_are_in_opencv_pixel_convention(blobs):
+    img, centres, f = blobs
+    off = _offsets(f.kpts, centres)
+    assert len(off) >= 30  # nearly every blob found
+    # COLMAP's +0.5 convention removed: the blob centres to a small fraction of a pixel
+    assert np.all(np.abs(np.median(off, axis=0)) < 0.1)
+    assert np.mean(np.linalg.norm(off, axis=1)) < 0.2
+    # and on the same blobs as OpenCV's SIFT (which reads about +0.25 px off, see the module doc)
+    cv_kpts = detect(img, DetectorConfig("sift")).kpts
+    on_blob = f.kpts[np.linalg.norm(f.kpts[:, None, :] - centres[None], axis=2).min(axis=1) < 1.5]
+    d = np.linalg.norm(on_blob[:, None, :] - cv_kpts[None, :, :], axis=2).min(axis=1)
+    assert np.mean(d < 0.5) > 0.8
+    # sizes are diameters as OpenCV's (2 x COLMAP's scale): a blob of sigma s has size about 2-4 s
+    assert np.all(f.sizes > 0) and np.all((f.angles >= 0) & (f.angles < 360))
+
+
+def test_descriptors_are_rootsift_at_opencv_scale(blobs):
+    _, _, f = blobs
+    assert f.descriptors.dtype == np.float32 and f.descriptors.shape[1] == 128
+    np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 512.0, rtol=1e-4)
+    assert f.descriptors.min() >= 0
+
+
+def test_mask_limits_the_keypoints(blobs):
+    img, _, full = blobs
+    mask = np.zeros_like(img)
+    mask[:, :200] = 255
+    f = detect(img, COLMAP, mask)
+    assert 0 < len(f) < len(full)
+    assert np.all(f.kpts[:, 0] < 200.5)
+
+
+def test_homography_pair_matches_land_on_the_truth(pair_store):
+    store, H = pair_store
+    f0, f1 = (original_features(store, n, FineConfig(original_detector="colmap-sift").originals_detector)
+              for n in ("a", "b"))
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(f0.descriptors, f1.descriptors, k=2)
+    m = np.array([(a.queryIdx, a.trainIdx) for a, b in knn if a.distance < 0.8 * b.distance])
+    assert len(m) >= 100
+    err = np.linalg.norm(_project(H, f0.kpts[m[:, 0]]) - f1.kpts[m[:, 1]], axis=1)
+    assert np.mean(err < 1.5) > 0.8
+    assert np.median(err) < 0.5
+
+
+def test_fine_stage_matches_the_originals_with_colmap_sift(pair_store):
+    store, H = pair_store
+    cfg = FineConfig(original_detector="colmap-sift")
+    assert cfg.detector_for(IDENTITY).name == "colmap-sift"
+    assert cfg.detector_for(ViewParams(2.0, 45.0, 1.0)).name == "sift"
+    tf = target_features(store, "b", cfg)
+    (cv_feats, cv_off), (cm_feats, cm_off) = tf.part(cfg.detector), tf.part(cfg.originals_detector)
+    assert cv_off == 0 and cm_off == len(cv_feats) and len(tf.kpts) == len(cv_feats) + len(cm_feats)
+
+    fm = fine_match(store, "a", "b", [IDENTITY], cfg)
+    assert len(fm.matches) >= 100
+    assert np.all(fm.matches[:, 1] >= cm_off)  # the originals' matches index the COLMAP block
+    err = np.linalg.norm(_project(H, fm.kpts_ref[fm.matches[:, 0]]) - fm.kpts_target[fm.matches[:, 1]], axis=1)
+    assert np.mean(err < 1.5) > 0.8
+
+    # a simulated view next to the original: its matches index the OpenCV block, both are correct
+    tilted = ViewParams(1.4142, 0.0, 1.0)
+    fm2 = fine_match(store, "a", "b", [tilted, IDENTITY], cfg)
+    assert np.any(fm2.matches[:, 1] < cm_off) and np.any(fm2.matches[:, 1] >= cm_off)
+    err2 = np.linalg.norm(_project(H, fm2.kpts_ref[fm2.matches[:, 0]]) - fm2.kpts_target[fm2.matches[:, 1]], axis=1)
+    assert np.mean(err2 < 1.5) > 0.8
+
+    # the default keeps one block, OpenCV's SIFT: the fine stage as before
+    plain = FineConfig()
+    assert plain.originals_detector == plain.detector
+    tf_plain = target_features(store, "b", plain)
+    assert list(tf_plain.parts) == [plain.detector.key] and tf_plain.kpts is cv_feats.kpts
+
+
+@pytest.mark.slow
+def test_multiview_matcher_with_colmap_originals_gives_correct_matches(pair_store):
+    store, H = pair_store
+    cfg = MatcherConfig.from_overrides(variant="multiview", **{"fine.original_detector": "colmap-sift"}, workers=1)
+    assert cfg.fine.originals_detector.name == "colmap-sift"
+    assert cfg.fine_include_original and cfg.guided_epipolar
+    res = ExtraAffineMatcher(cfg).match(store, "a", "b")
+    assert res.num_matches >= 100
+    p0, p1 = res.matched_points(inliers_only=False)
+    err = np.linalg.norm(_project(H, p0) - p1, axis=1)
+    assert np.mean(err < 1.5) > 0.8
+
+
+def test_recon_run_matches_the_originals_with_colmap_sift_by_default():
+    from recon.config import build_run_config
+    from recon.core.stages.match import make_matcher
+
+    assert MatcherConfig.multiview().fine.original_detector == "colmap-sift"
+    assert MatcherConfig().fine.original_detector == "sift" and MatcherConfig.paper().fine.original_detector == "sift"
+    run = build_run_config()
+    assert make_matcher(run.match).cfg.fine.originals_detector.name == "colmap-sift"
+    off = build_run_config(settings=["matcher.fine.original_detector=sift"])
+    assert make_matcher(off.match).cfg.fine.originals_detector.name == "sift"
