@@ -125,3 +125,12 @@ def test_bad_options_are_one_line_and_exit_2(tmp_path, args, message):
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], p.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_collect_runs_nothing_and_lists_missing_runs_as_not_run(tmp_path):
+    res = run_scale(tmp_path / "c", sizes=[25], pairs_modes=["retrieval:10"], engine=EngineSpec("threads", 2),
+                    engine_size=0, collect=True)
+    (row,) = res["rows"]
+    assert row["status"] == "skipped" and "not run" in row["reason"] and row["num_images"] == 25
+    assert not (tmp_path / "c" / "scenes").exists() and not (tmp_path / "c" / "runs").exists()
+    assert res["summary"]["targets"] == []

@@ -214,6 +214,9 @@ def scale_cmd(
     seed: Annotated[int, seed_option()] = 0,
     recompute: Annotated[bool, typer.Option("--recompute", help="Run again the runs whose results are already in "
                                                                 "OUT.", metavar="")] = False,
+    collect: Annotated[bool, typer.Option("--collect", help="Run nothing: gather the finished runs in OUT into the "
+                                                            "table, JSON and plot (others are listed as not run).",
+                                          metavar="")] = False,
 ) -> None:
     """Time per stage, peak memory and registration against the number of photos (issue 10)."""
     import shutil
@@ -260,7 +263,8 @@ def scale_cmd(
     with claim_output(out, "bench", legacy=("scale.json",)) as out:
         result = run_scale(out, size_list, modes, main_engine[0], engine_size, eng_pairs[0], engine_list, real_list,
                            r_pairs[0], max_exhaustive, seed=seed, max_size=max_size, recompute=recompute,
-                           log=lambda m: err.print(f"recon: {m}", markup=False), image_size=size)  # type: ignore[arg-type]
+                           log=lambda m: err.print(f"recon: {m}", markup=False), image_size=size,  # type: ignore[arg-type]
+                           collect=collect)
     console = Console(width=None if sys.stdout.isatty() else 200, highlight=False)
     console.print(scale_table(result))
     for line in targets_lines(result):

@@ -348,8 +348,9 @@ def gt_eval(row: dict[str, Any], scene_dir: Path, run_dir: Path) -> None:
 
 
 def run_one(spec: RunSpec, out: Path, seed: int, max_size: int, recompute: bool, log: Log,
-            image_size: tuple[int, int] = (800, 600)) -> dict[str, Any]:
-    """Run (or reuse) one benchmark run; its row (also OUT/runs/<scene>/<config>/bench_row.json)."""
+            image_size: tuple[int, int] = (800, 600), collect: bool = False) -> dict[str, Any]:
+    """Run (or reuse) one benchmark run; its row (also OUT/runs/<scene>/<config>/bench_row.json).
+    With `collect`, nothing runs: a run without a finished result is a `skipped` row."""
     run_dir = out / "runs" / spec.scene / spec.config
     fp = fingerprint(spec, seed, max_size, image_size)
     saved = run_dir / ROW_FILE
@@ -361,6 +362,10 @@ def run_one(spec: RunSpec, out: Path, seed: int, max_size: int, recompute: bool,
                 return {**prev["row"], "group": spec.group}
         except (OSError, ValueError):
             pass
+    if collect:
+        return {**{k: v for k, v in asdict(spec).items() if k != "pairs"}, "pairs_spec": spec.pairs,
+                "num_images": int(spec.scene.removeprefix("orbit-")) if spec.kind == "rendered" else None,
+                "config": spec.config, "status": "skipped", "reason": "not run (--collect: no finished result in OUT)"}
     cmd = run_command(spec, run_dir, seed, max_size)
     log(f"{spec.scene} {spec.config}: {' '.join(cmd[1:])}")
     run_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -518,8 +523,9 @@ def run_scale(out: str | Path, sizes: Sequence[int] = DEFAULT_SIZES, pairs_modes
               real: Sequence[tuple[str, Path]] = (), real_pairs: str = DEFAULT_REAL_PAIRS,
               max_exhaustive: int = DEFAULT_MAX_EXHAUSTIVE, seed: int = 0, max_size: int = 1600,
               recompute: bool = False, log: Log = lambda _m: None,
-              image_size: tuple[int, int] = (800, 600)) -> dict[str, Any]:
-    """Render, run and measure everything `plan_runs` lists; {"config", "rows", "summary"} (also OUT/scale.json,
+              image_size: tuple[int, int] = (800, 600), collect: bool = False) -> dict[str, Any]:
+    """Render, run and measure everything `plan_runs` lists (with `collect`: only gather finished
+    runs); {"config", "rows", "summary"} (also OUT/scale.json,
     rewritten after every run so an interrupted sweep keeps its finished runs)."""
     out = Path(out).expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -535,14 +541,14 @@ def run_scale(out: str | Path, sizes: Sequence[int] = DEFAULT_SIZES, pairs_modes
               "seed": seed, "max_size": max_size, "image_size": list(image_size), "cpu_count": os.cpu_count(),
               "memory": f"peak_tree_mb: summed RSS of the run's process tree (Dask workers included), sampled every "
                         f"{SAMPLE_S} s; MB = 10^6 bytes",
-              "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+              "collect": collect, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     rendered = {n for n in sizes_to_render if any(r.scene == f"orbit-{n}" for r in runs)}
-    for n in sorted(rendered):
+    for n in sorted(rendered) if not collect else ():
         ensure_scene(out, n, seed, log, image_size)
     rows: list[dict[str, Any]] = []
     result = {"config": config, "rows": rows + skipped, "summary": summarise(rows, engine)}
     for spec in runs:
-        rows.append(run_one(spec, out, seed, max_size, recompute, log, image_size))
+        rows.append(run_one(spec, out, seed, max_size, recompute and not collect, log, image_size, collect))
         result = {"config": config, "rows": rows + skipped, "summary": summarise(rows, engine)}
         write_json_atomic(out / "scale.json", result)
     write_json_atomic(out / "scale.json", result)
