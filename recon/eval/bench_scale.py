@@ -639,7 +639,7 @@ def plot_scale(result: dict[str, Any], path: Path) -> Path | None:
     ax.set_yscale("log")
     ax.set_xlabel("images N")
     ax.set_ylabel("total seconds (recon run, load to export)")
-    ax.set_title(f"recon run time against N ({cfg['engine']}, {cfg.get('cpu_count')} cores, loaded machine)",
+    ax.set_title(f"recon run time against N ({cfg['engine']}, {cfg.get('cpu_count')} cores)",
                  fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
