@@ -98,6 +98,7 @@ def test_tiny_bench_writes_json_with_its_documented_keys(tmp_path):
     assert 3 <= r["pairs"] <= 5  # each image with its nearest other: at least N/2 (mutual), at most N pairs
     assert 0 <= r["registered"] <= 5
     assert r["seconds_total"] > 0 and r["wall_seconds"] >= r["seconds_total"]
+    assert r["cpu_seconds"] > 1.0  # interpreter, OpenCV, SIFT and matching of the child process
     assert set(r["stages"]) >= {"features", "pairs", "match", "sfm"} and r["match_seconds"] == r["stages"]["match"]
     assert r["peak_tree_mb"] > 50  # a python process with numpy and OpenCV loaded
     assert r["rot_err_deg_median"] is None or 0 <= r["rot_err_deg_median"] < 180

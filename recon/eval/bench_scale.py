@@ -18,6 +18,8 @@ its `report.json` gives pairs, seconds per stage, registered images. Measured he
 
 * `wall_seconds`: the subprocess's wall time (includes interpreter start and, for Dask, the
   cluster's start and stop; `seconds_total` is the report's own, from load to export);
+* `cpu_seconds`: user + system CPU seconds of the subprocess and all its descendants (wait4's
+  rusage): unlike wall time, it does not grow when other work loads the machine;
 * `peak_tree_mb`: the highest sum of resident memory (RSS, MB = 10^6 bytes) over the subprocess
   and all its descendants (Dask's nanny and worker processes), sampled with psutil every
   `SAMPLE_S` s. Summed RSS counts shared pages (libraries) once per process, so it is an upper
@@ -373,7 +375,7 @@ def run_one(spec: RunSpec, out: Path, seed: int, max_size: int, recompute: bool,
     with open(run_dir.parent / f"{spec.config}.log", "wb") as logf:
         proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=_child_env())
         with TreePeak(proc.pid) as peak:
-            rc = proc.wait()
+            rc, cpu = _wait_with_cpu(proc)
     wall = time.perf_counter() - t0
     report = None
     rp = run_dir / "report.json"
@@ -384,11 +386,23 @@ def run_one(spec: RunSpec, out: Path, seed: int, max_size: int, recompute: bool,
             report = None
     row = row_of(spec, report, run_dir, wall, peak.peak_mb, rc,
                  error=f"recon run exited {rc}; see {run_dir.parent / (spec.config + '.log')}")
+    row["cpu_seconds"] = None if cpu is None else round(cpu, 1)
     if row.get("status") in ("ok", "no_model"):
         write_json_atomic(saved, {"fingerprint": fp, "row": row})
     log(f"{spec.scene} {spec.config}: {row.get('status')}, {row.get('registered', 0)}/{row.get('num_images', '?')} "
         f"registered, {row.get('pairs', '?')} pairs, {row.get('seconds_total')} s, tree peak {row.get('peak_tree_mb')} MB")
     return row
+
+
+def _wait_with_cpu(proc: subprocess.Popen) -> tuple[int, float | None]:
+    """(exit code, CPU seconds (user + system) of the process and every descendant it waited for,
+    Dask workers included), from wait4's rusage; CPU time, unlike wall time, does not grow when
+    other work loads the machine. (code, None) where wait4 is missing (Windows)."""
+    if not hasattr(os, "wait4"):
+        return proc.wait(), None
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, usage.ru_utime + usage.ru_stime
 
 
 def ensure_scene(out: Path, n: int, seed: int, log: Log, image_size: tuple[int, int] = (800, 600)) -> Path:
@@ -566,19 +580,19 @@ def scale_table(result: dict[str, Any]) -> Any:
     t = Table(title="recon bench scale (seconds per stage; other = load, tracks, database, verify, export; "
                     "peak = summed RSS of the run's process tree, MB)")
     for col in ("scene", "N", "pairs", "engine", "proposed", "verified", *(c for c, _ in STAGE_COLUMNS), "other",
-                "total", "wall", "peak MB", "registered", "rot. err °"):
+                "total", "wall", "CPU s", "peak MB", "registered", "rot. err °"):
         t.add_column(col, justify="left" if col in ("scene", "pairs", "engine") else "right")
     for r in sorted(result["rows"], key=_row_order):
         eng = f"{r['engine']}:{r['workers']}"
         if r.get("status") == "skipped" or r.get("status") == "error":
             t.add_row(r["scene"], _fmt(r.get("num_images"), "d"), r["pairs_spec"], eng,
-                      f"[dim]{r['status']}: {r.get('reason', '')}[/dim]", *[""] * 11)
+                      f"[dim]{r['status']}: {r.get('reason', '')}[/dim]", *[""] * 12)
             continue
         st = r.get("stages") or {}
         t.add_row(r["scene"], str(r["num_images"]), r["pairs_spec"], eng, str(r["pairs"]), str(r["verified_pairs"]),
                   *(_fmt(st.get(k), ".1f") for _, k in STAGE_COLUMNS), _fmt(_other_seconds(r), ".1f"),
                   _fmt(r.get("seconds_total"), ".1f"),
-                  _fmt(r.get("wall_seconds"), ".1f"), _fmt(r.get("peak_tree_mb"), ".0f"),
+                  _fmt(r.get("wall_seconds"), ".1f"), _fmt(r.get("cpu_seconds"), ".0f"), _fmt(r.get("peak_tree_mb"), ".0f"),
                   f"{r['registered']}/{r['num_images']}", _fmt(r.get("rot_err_deg_median"), ".3f"))
     return t
 
