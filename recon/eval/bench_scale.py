@@ -641,14 +641,13 @@ def plot_scale(result: dict[str, Any], path: Path) -> Path | None:
         if r["kind"] == "real":
             ax.plot([r["num_images"]], [r["seconds_total"]], "s", label=f"{r['scene']}, {r['pairs_spec']} "
                                                                         f"({r['pairs_used']})")
-    ns = [r["num_images"] for r in done if r.get("num_images")]
-    if ns:
-        lo, hi = min(ns), max(ns)
-        ref = [r for r in sweep if r["num_images"] == lo]
-        if ref and hi > lo:
-            y0 = min(r["seconds_total"] for r in ref)
-            for e, style in ((1.2, ":"), (2.0, "--")):
-                ax.plot([lo, hi], [y0, y0 * (hi / lo) ** e], "k" + style, lw=0.8, label=f"N^{e:g} from the first point")
+    series = {m: sorted((r["num_images"], r["seconds_total"]) for r in sweep if r["pairs_spec"] == m)
+              for m in dict.fromkeys(r["pairs_spec"] for r in sweep)}
+    longest = max(series.values(), key=len, default=[])
+    if len(longest) >= 2:  # reference slopes from the first point of the longest series
+        (lo, y0), hi = longest[0], longest[-1][0]
+        for e, style in ((1.2, ":"), (2.0, "--")):
+            ax.plot([lo, hi], [y0, y0 * (hi / lo) ** e], "k" + style, lw=0.8, label=f"N^{e:g}")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("images N")
