@@ -28,6 +28,15 @@ its `report.json` gives pairs, seconds per stage, registered images. Measured he
   (`OUT/sparse/0`) against the scene's ground truth (`recon.eval.evaluate.evaluate_model`, as
   `recon compare`), when the scene has one.
 
+`OUT/scale.json`: `config` (the options, `cpu_count`, how memory is measured), `rows` and
+`summary` (`fits`, `engines`, `targets`). A row: `scene`, `kind`, `scene_dir`, `engine`, `workers`,
+`group`, `pairs_spec`, `config`, `status` (ok, no_model, error, skipped) and `reason`; for a run:
+`num_images`, `pairs` (proposed), `pairs_used` (exhaustive or retrieval: what `auto` chose),
+`pairs_bound` ((K+1)*N, plus S*N with `+sequential:S`; null for exhaustive), `verified_pairs`
+(>= 15 inliers), `registered`, `num_points3D`, `stages` (seconds per stage), `match_seconds`,
+`seconds_total`, `wall_seconds`, `cpu_seconds`, `peak_tree_mb`, `report_peak_mb` (the driver
+process alone, the report's own), `rot_err_deg_median`, `auc_5`, `out`, `returncode`.
+
 A finished run leaves `OUT/runs/<scene>/<config>/bench_row.json`; a later `recon bench scale`
 with the same run settings (scene, pairs, engine, workers, seed, max size) reuses it instead of
 running again (`--recompute` runs everything again), so a long sweep can be done in pieces and
