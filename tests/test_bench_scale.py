@@ -94,6 +94,10 @@ def test_tiny_bench_writes_json_with_its_documented_keys(tmp_path):
     assert rows["exhaustive"]["status"] == "skipped"
     r = rows["retrieval:1"]
     assert r["status"] in ("ok", "no_model"), r
+    assert set(r) >= {"scene", "kind", "engine", "workers", "pairs_spec", "status", "num_images", "pairs",
+                      "pairs_used", "pairs_bound", "verified_pairs", "registered", "stages", "match_seconds",
+                      "seconds_total", "wall_seconds", "cpu_seconds", "peak_tree_mb", "rot_err_deg_median", "auc_5"}
+    assert set(data) == {"config", "rows", "summary"} and set(data["summary"]) == {"fits", "engines", "targets"}
     assert r["num_images"] == 5 and r["pairs_bound"] == 10
     assert 3 <= r["pairs"] <= 5  # each image with its nearest other: at least N/2 (mutual), at most N pairs
     assert 0 <= r["registered"] <= 5
