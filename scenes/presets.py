@@ -113,6 +113,39 @@ def facade_sweep(num_views: int, max_azimuth_deg: float, name: str | None = None
         cameras=CameraArc(az, distance=11.0, elevation_deg=12.0, look_at=(0.0, -0.5, 2.0)))
 
 
+def building_planes(width: float = 8.0, depth: float = 6.0, height: float = 5.0,
+                    ground: float = 16.0) -> tuple[Plane, ...]:
+    """A free-standing block building centred on the origin: four walls facing outwards
+    (`width` m along x, `depth` m along y, `height` m tall) and a square ground of `ground` m."""
+    w, d = width / 2.0, depth / 2.0
+    return (
+        Plane("south", (-w, -d, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), width, height),   # faces -y
+        Plane("east", (w, -d, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), depth, height),    # faces +x
+        Plane("north", (w, d, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0), width, height),   # faces +y
+        Plane("west", (-w, d, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0), depth, height),   # faces -x
+        Plane("ground", (-ground / 2, -ground / 2, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), ground, ground),
+    )
+
+
+ORBIT_MIN_VIEWS = 3
+ORBIT_MAX_VIEWS = 2000
+
+
+def orbit(num_views: int, name: str | None = None) -> ScenePreset:
+    """A walk all around a block building (`building_planes`), `num_views` photos evenly spaced
+    over 360 deg of azimuth, 12 m from its centre and 20 deg up: the scale benchmark's capture
+    (`recon bench scale`). Neighbours overlap (360/N deg apart) and opposite sides never do, as
+    in a real capture, so the pairs worth matching grow like N while all pairs grow like N^2."""
+    if not ORBIT_MIN_VIEWS <= num_views <= ORBIT_MAX_VIEWS:
+        raise ValueError(f"orbit: {num_views} views; choose {ORBIT_MIN_VIEWS}-{ORBIT_MAX_VIEWS}")
+    az = tuple(float(x) for x in -90.0 + 360.0 * np.arange(num_views) / num_views)  # first view faces south
+    return ScenePreset(
+        name=name or f"orbit-{num_views}",
+        description=f"block building, {num_views} views all around (360 deg, {360.0 / num_views:.3g} deg apart)",
+        planes=building_planes(),
+        cameras=CameraArc(az, distance=12.0, elevation_deg=20.0, look_at=(0.0, 0.0, 1.5)))
+
+
 PRESETS: dict[str, ScenePreset] = {
     p.name: p for p in (
         corner_preset("corner-easy", 8, 25.0, 65.0, "building corner, 8 views over 40 deg (easy)"),
@@ -126,9 +159,17 @@ DEFAULT_PRESET = "corner"
 
 
 def get_preset(name: str) -> ScenePreset:
-    """The preset called `name`, or `facade-<N>x<DEG>` for a facade sweep; ValueError listing names."""
+    """The preset called `name`, `facade-<N>x<DEG>` for a facade sweep or `orbit-<N>` for N views
+    all around a building (`orbit`); ValueError listing names."""
     if name in PRESETS:
         return PRESETS[name]
+    if name.startswith("orbit-"):
+        try:
+            n_views = int(name[len("orbit-"):])
+        except ValueError:
+            n_views = -1
+        if ORBIT_MIN_VIEWS <= n_views <= ORBIT_MAX_VIEWS:
+            return orbit(n_views)
     if name.startswith("facade-") and "x" in name:
         try:
             n, deg = name[len("facade-"):].split("x", 1)
@@ -136,7 +177,8 @@ def get_preset(name: str) -> ScenePreset:
                 return facade_sweep(int(n), float(deg))
         except ValueError:
             pass
-    raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)} or facade-<N>x<DEG>")
+    raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}, facade-<N>x<DEG> "
+                     f"or orbit-<N> ({ORBIT_MIN_VIEWS}-{ORBIT_MAX_VIEWS} views)")
 
 
 def viewing_angle_deg(plane: Plane, cam_centre: np.ndarray) -> float:

@@ -185,6 +185,12 @@ def write_colmap_gt(gt_dir: Path, preset: ScenePreset, names: list[str], poses: 
 
 
 
+def view_names(num_views: int) -> list[str]:
+    """`view_00.png` ...: two digits, more when there are over 100 views, so name order is view order."""
+    width = max(2, len(str(num_views - 1)))
+    return [f"view_{i:0{width}d}.png" for i in range(num_views)]
+
+
 def _non_empty_dir(path: Path) -> bool:
     return path.is_dir() and any(path.iterdir())
 
@@ -275,7 +281,7 @@ def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: li
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x5CE7E])
     K = intrinsics(p)
     poses = [look_at_pose(c, np.asarray(p.cameras.look_at)) for c in camera_centres(p)]
-    names = [f"view_{i:02d}.png" for i in range(len(poses))]
+    names = view_names(len(poses))
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_dir.parent / f".{out_dir.name}.rendering.{os.getpid()}"

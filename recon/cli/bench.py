@@ -1,5 +1,7 @@
 """`recon bench ...`: benchmarks. `recon bench pairs DATA_ROOT` runs the GT-homography pair benchmark;
-`recon bench scenes ROOT` runs `recon compare` on every scene under ROOT (see `recon.eval.compare`)."""
+`recon bench scenes ROOT` runs `recon compare` on every scene under ROOT (see `recon.eval.compare`);
+`recon bench scale` measures time, memory and registration against the number of photos
+(see `recon.eval.bench_scale`)."""
 
 from __future__ import annotations
 
@@ -172,6 +174,106 @@ def difficulty_cmd(
         json_out.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(js, json_out)
     png = plot_difficulty(data, Path(out) / "difficulty.png")
+    typer.echo(f"JSON: {json_out or js}")
+    typer.echo(f"plot: {png}" if png else "plot: skipped (matplotlib not installed: pip install -e '.[bench]')")
+
+
+@bench_app.command("scale")
+def scale_cmd(
+    out: Annotated[Path, typer.Option("--out", help="Rendered scenes, runs, scale.json (and scale.png).")]
+        = Path("out") / "bench-scale",
+    sizes: Annotated[str, typer.Option("--sizes", help="Comma-separated numbers of views of the rendered walk "
+                                                       "around a building (orbit-N, 800x600); none = no rendered "
+                                                       "scenes.")] = "25,50,100,200",
+    pairs: Annotated[str, typer.Option("--pairs", help="Comma-separated pair selections run on every size: "
+                                                       "exhaustive, auto, retrieval:K[+sequential:S].")]
+        = "exhaustive,retrieval:10",
+    max_exhaustive: Annotated[int, typer.Option("--max-exhaustive", help="Exhaustive runs only up to this many "
+                                                                         "images; larger ones are reported as "
+                                                                         "skipped.")] = 50,
+    engine: Annotated[str, typer.Option("--engine", help="Engine of the size sweep and the real scenes: "
+                                                         "threads:W or dask:W.")] = "threads:2",
+    engines: Annotated[str, typer.Option("--engines", help="Engines compared on the --engine-size scene "
+                                                           "(none = no comparison).")]
+        = "threads:1,threads:2,dask:1,dask:2",
+    engine_size: Annotated[int, typer.Option("--engine-size", help="Views of the scene the engines are compared "
+                                                                   "on.")] = 50,
+    engine_pairs: Annotated[str, typer.Option("--engine-pairs", help="Pair selection of the engine comparison.")]
+        = "retrieval:10",
+    real: Annotated[str, typer.Option("--real", help="Comma-separated real scene folders, or names under "
+                                                     "$RECON_SHARED_DATA/scenes; missing ones are reported as "
+                                                     "skipped; none = no real scenes.")] = "castle_P30,fox",
+    real_pairs: Annotated[str, typer.Option("--real-pairs", help="Pair selection of the real scenes.")] = "auto",
+    max_size: Annotated[int, typer.Option("--max-size", help="Working resolution (longer side, px; 0 = full).")]
+        = DEFAULT_MAX_SIZE,
+    image_size: Annotated[str, typer.Option("--image-size", help="Rendered size WxH.")] = "800x600",
+    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
+                                                     help="Also copy scale.json to this file.")] = None,
+    plot: Annotated[Optional[Path], typer.Option("--plot", help="Log-log plot of total time against N "
+                                                                "(default: OUT/scale.png).")] = None,
+    seed: Annotated[int, seed_option()] = 0,
+    recompute: Annotated[bool, typer.Option("--recompute", help="Run again the runs whose results are already in "
+                                                                "OUT.", metavar="")] = False,
+    collect: Annotated[bool, typer.Option("--collect", help="Run nothing: gather the finished runs in OUT into the "
+                                                            "table, JSON and plot (others are listed as not run).",
+                                          metavar="")] = False,
+) -> None:
+    """Time per stage, peak memory and registration against the number of photos (issue 10)."""
+    import shutil
+    import sys
+
+    from rich.console import Console
+
+    from recon.core.outdir import claim_output
+    from recon.errors import UserError
+    from recon.eval.bench_scale import (
+        parse_engines,
+        parse_pairs_modes,
+        parse_sizes,
+        plot_scale,
+        resolve_real,
+        run_scale,
+        scale_table,
+        targets_lines,
+    )
+
+    size_list = parse_sizes(sizes)
+    modes = parse_pairs_modes(pairs)
+    main_engine = parse_engines(engine, "--engine")
+    if len(main_engine) != 1:
+        raise UserError(f"--engine {engine!r}: give one engine, threads:W or dask:W")
+    engine_list = parse_engines(engines)
+    eng_pairs = parse_pairs_modes(engine_pairs, "--engine-pairs")
+    r_pairs = parse_pairs_modes(real_pairs, "--real-pairs")
+    if len(eng_pairs) != 1 or len(r_pairs) != 1:
+        raise UserError("--engine-pairs and --real-pairs take one pair selection each")
+    if max_exhaustive < 0:
+        raise UserError(f"--max-exhaustive must be >= 0, got {max_exhaustive}")
+    if engine_list and engine_size:
+        parse_sizes(str(engine_size))
+    if engine_size < 0:
+        raise UserError(f"--engine-size must be >= 0 (0 = no engine comparison), got {engine_size}")
+    if max_size < 0:
+        raise UserError(f"--max-size must be >= 0, got {max_size}")
+    size = parse_image_size(image_size)
+    real_list = resolve_real(real)
+    if not size_list and not real_list and not (engine_list and engine_size):
+        raise UserError("nothing to run: give --sizes, --real or --engines with --engine-size")
+    err = Console(stderr=True, highlight=False)
+    with claim_output(out, "bench", legacy=("scale.json",)) as out:
+        result = run_scale(out, size_list, modes, main_engine[0], engine_size, eng_pairs[0], engine_list, real_list,
+                           r_pairs[0], max_exhaustive, seed=seed, max_size=max_size, recompute=recompute,
+                           log=lambda m: err.print(f"recon: {m}", markup=False), image_size=size,  # type: ignore[arg-type]
+                           collect=collect)
+    console = Console(width=None if sys.stdout.isatty() else 200, highlight=False)
+    console.print(scale_table(result))
+    for line in targets_lines(result):
+        console.print(line, markup=False)
+    js = Path(out) / "scale.json"
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(js, json_out)
+    png = plot_scale(result, plot or Path(out) / "scale.png")
     typer.echo(f"JSON: {json_out or js}")
     typer.echo(f"plot: {png}" if png else "plot: skipped (matplotlib not installed: pip install -e '.[bench]')")
 
