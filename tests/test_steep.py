@@ -37,7 +37,7 @@ def test_blur_follows_the_compressed_direction():
 @pytest.mark.slow
 def test_steep_level_recovers_evd_cafe(shared_data):
     """EVD cafe: at the grid's tilts the coarse search finds no ORB signal and every level up to
-    `pairs` ends with no correct match (benchmarks/results/pairs.txt); the steep views of the
+    `two-sided` ends with no correct match (docs/decisions.md, "The `steep` level"); the steep views of the
     detailed image recover the homography: most verified matches lie within 5 px of the truth."""
     e = shared_data / "evd"
     store = FeatureStore()
