@@ -79,8 +79,8 @@ def _side_attempt(ctx: MatchContext, ref: int, cfg: SteepConfig, label: str) -> 
             seeds.append((Attempt(label=label, reference=ref, fine=fm, views=[v], coarse=[], verified=n_verified),
                           H if H_fit is None else H_fit))
     seeds.sort(key=lambda s: -s[0].verified)
-    best = max((a for a, _ in seeds), key=lambda a: a.verified, default=None) or Attempt(
-        label=label, reference=ref, fine=_empty(ft.kpts), views=[], coarse=[], verified=0)
+    best = seeds[0][0] if seeds else Attempt(label=label, reference=ref, fine=_empty(ft.kpts), views=[], coarse=[],
+                                             verified=0)
     if cfg.rectify_rounds > 0:
         rectified = []
         for att, H_seed in seeds[: cfg.rectify_candidates]:
@@ -132,10 +132,10 @@ def rectified_features(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float
 
 
 def rectified_round(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64], cfg: SteepConfig
-                    ) -> tuple[FineMatches, int, NDArray[np.float64]] | None:
+                    ) -> tuple[FineMatches, int] | None:
     """Guided matching of `rectified_features` against the target's original SIFT, repeated
-    `cfg.rectify_rounds` times with the homography re-fitted each round; (matches, verified,
-    last homography), or None when no round is trustworthy.
+    `cfg.rectify_rounds` times with the homography re-fitted each round; (the best round's
+    matches, its verified count), or None when no round is trustworthy.
 
     Verified = matches within `rectify_inlier_px` of the re-fitted homography. Guided matching
     under a *wrong* homography still pairs keypoints inside the search radius, and a loose RANSAC
@@ -144,11 +144,12 @@ def rectified_round(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64]
     needs `rectify_min_ratio` of its matches verified."""
     det = rectify_detector(ctx, cfg)
     ft = original_features(ctx.store, ctx.names[1 - ref], det)
-    out = None
+    out: tuple[FineMatches, int] | None = None
     H = H_t_from_r
+    w, h = ctx.size(ref)
+    centre_ref = np.array([(w - 1) / 2, (h - 1) / 2])
     for _ in range(cfg.rectify_rounds):
-        w, h = ctx.size(ref)
-        fr = rectified_features(ctx, ref, H, np.array([(w - 1) / 2, (h - 1) / 2]), det)
+        fr = rectified_features(ctx, ref, H, centre_ref, det)
         gm, gd = guided_match(fr.kpts, fr.descriptors, ft.kpts, ft.descriptors, H, cfg.rectify_px, cfg.guided_ratio)
         if len(gm) < 4:
             break
@@ -160,7 +161,7 @@ def rectified_round(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64]
                 or (out is not None and n_verified <= out[1])):
             break
         out = (FineMatches(kpts_ref=fr.kpts, kpts_target=ft.kpts, matches=gm, distances=gd, per_view={"rectified": len(gm)}),
-               n_verified, H)
+               n_verified)
         H = H_new
     return out
 
