@@ -136,9 +136,6 @@ class MatchConfig:
             raise UserError(f"--method {self.method!r}: choose one of {', '.join(METHODS)}")
         check_engine(self.engine)
         self.matcher = matcher_options(self.method, self.matcher)
-        if self.engine != "threads" and self.matcher:
-            raise UserError("--engine dask: matcher options (--set matcher.*) are not sent to Dask workers yet; "
-                            "use --engine threads with them")
 
 
 @dataclass

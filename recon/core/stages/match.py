@@ -39,12 +39,13 @@ def match_pair_task(store: FeatureStore, matcher: PairMatcher, name0: str, name1
     return matcher.match(store, name0, name1)
 
 
-def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) -> PairMatcher:
-    """The registry's matcher for multi-view use: no final homography filter (COLMAP verifies),
-    the extra-affine matcher's `multiview` variant, seeded, single-threaded inside when pairs
-    already run in parallel (`inner_workers`), then the user's `cfg.matcher` options on top
-    (`section.field` keys become the registry's `section__field`; deeper ones replace the
-    nested dataclass). A plain method name means `MatchConfig(method=name)`."""
+def matcher_overrides(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) -> dict[str, Any]:
+    """The registry overrides of the multi-view matcher: no final homography filter (COLMAP
+    verifies), the extra-affine matcher's `multiview` variant, seeded, single-threaded inside when
+    pairs already run in parallel (`inner_workers`), then the user's `cfg.matcher` options on top
+    (`section.field` keys become the registry's `section__field`; deeper ones replace the nested
+    dataclass). Plain picklable data: Dask workers rebuild the same matcher from it. A plain
+    method name means `MatchConfig(method=name)`."""
     cfg = MatchConfig(method=cfg) if isinstance(cfg, str) else cfg
     try:
         probe = get_matcher(cfg.method)
@@ -57,7 +58,10 @@ def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) 
     if cfg.method == "extra-affine":
         overrides["variant"] = "multiview"
     if cfg.matcher:
-        base = getattr(get_matcher(cfg.method, **overrides), "cfg", None)
+        try:
+            base = getattr(get_matcher(cfg.method, **overrides), "cfg", None)
+        except (TypeError, ValueError) as e:
+            raise UserError(f"matcher options {cfg.matcher}: {e}") from None
         for key, value in cfg.matcher.items():
             section, _, rest = key.partition(".")
             if not rest:
@@ -68,6 +72,13 @@ def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) 
                 name, _, leaf = rest.partition(".")
                 current = overrides.get(f"{section}__{name}", getattr(getattr(base, section), name))
                 overrides[f"{section}__{name}"] = _replace_path(current, leaf, value)
+    return overrides
+
+
+def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) -> PairMatcher:
+    """The registry's matcher for multi-view use, built from `matcher_overrides` (see there)."""
+    cfg = MatchConfig(method=cfg) if isinstance(cfg, str) else cfg
+    overrides = matcher_overrides(cfg, seed, inner_workers)
     try:
         return get_matcher(cfg.method, **overrides)
     except (TypeError, ValueError) as e:
@@ -129,8 +140,9 @@ class Match:
         from recon.core.dask_engine import match_pair_on_worker, pair_task_specs
 
         cfg = run.cfg
+        overrides = tuple(sorted(matcher_overrides(cfg.match, cfg.seed, inner_workers=1).items()))
         specs = pair_task_specs(run.data.scene, [pairs[i] for i in todo], cfg.match.method, cfg.seed,
-                                cfg.load.max_size or None, run.cache / "features")
+                                cfg.load.max_size or None, run.cache / "features", overrides)
         return {ex.submit(match_pair_on_worker, spec): i for spec, i in zip(specs, todo)}
 
     @staticmethod
