@@ -123,6 +123,14 @@ class MatchConfig:
     """Executor of the pair tasks: threads (a thread pool of --workers threads), dask (a local Dask
     cluster of --workers processes) or dask:ADDRESS (an existing Dask scheduler)."""
 
+    adaptive_above: int = 30
+    """Scenes with more images than this run the extra-affine matcher's adaptive per-pair paths
+    (`matching.adaptive`, the `adaptive` preset: pairs whose originals already match well skip the
+    simulated views) unless `matcher.adaptive` is set; 0 = never. Large captures are mostly easy
+    neighbouring pairs, where the full grid costs time for nothing (README, "Scale"); small ones
+    keep the full grid, which measures best on wide baselines. The same size as `--pairs auto`'s
+    switch to retrieval."""
+
     matcher: dict[str, Any] = field(default_factory=dict)
     """The matcher's own options by field name, e.g. {"fine_top_k": 3, "coarse.rank_by": "matches"}
     (`--set matcher.KEY=VALUE`, or a `[matcher]` table in a config file); values are checked
@@ -135,10 +143,9 @@ class MatchConfig:
         if self.method not in METHODS:
             raise UserError(f"--method {self.method!r}: choose one of {', '.join(METHODS)}")
         check_engine(self.engine)
+        if isinstance(self.adaptive_above, bool) or not isinstance(self.adaptive_above, int) or self.adaptive_above < 0:
+            raise UserError(f"match.adaptive_above {self.adaptive_above!r}: a number of images >= 0 (0 = never)")
         self.matcher = matcher_options(self.method, self.matcher)
-        if self.engine != "threads" and self.matcher:
-            raise UserError("--engine dask: matcher options (--set matcher.*) are not sent to Dask workers yet; "
-                            "use --engine threads with them")
 
 
 @dataclass

@@ -77,6 +77,26 @@ def test_worker_task_in_threads_equals_pipeline_task(scene5, tmp_path):
     assert any(r.num_matches > 50 for r in got)
 
 
+def test_user_matcher_options_reach_the_workers(scene5, tmp_path):
+    """`--set matcher.*` options travel in the task spec: a worker builds the driver's matcher
+    (same identity, so the same pair cache key) and returns the driver's result."""
+    from recon.config import MatchConfig
+    from recon.core.stages.match import make_matcher, match_pair_task, matcher_identity, matcher_overrides
+
+    scene, _, _ = scene5
+    cfg = MatchConfig(method="extra-affine", engine="dask",
+                      matcher={"fine_top_k": 1, "coarse.rank_by": "matches", "escalation.steep.candidates": 3})
+    ov = tuple(sorted(matcher_overrides(cfg, 3, inner_workers=1).items()))
+    driver = make_matcher(cfg, 3, inner_workers=1)
+    assert matcher_identity(D._matcher("extra-affine", ov)) == matcher_identity(driver)
+    assert matcher_identity(driver) != matcher_identity(make_matcher("extra-affine", 3, 1))  # the options count
+    spec = D.pair_task_specs(scene, PAIRS6[1:2], "extra-affine", 3, 1600, tmp_path / "cache", ov)[0]
+    store = FeatureStore()
+    for im in scene.images[:3]:
+        store.add_image(im.name, D.load_working_gray(im.path, 1600))
+    _same(match_pair_task(store, driver, *PAIRS6[1]), D.match_pair_on_worker(spec))
+
+
 @pytest.mark.slow
 def test_dask_equals_threads_and_survives_a_killed_worker(scene5, tmp_path):
     scene, ref, out = scene5

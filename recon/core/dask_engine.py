@@ -102,19 +102,11 @@ class ImageTaskSpec:
 
 
 def pipeline_overrides(method: str, seed: int) -> tuple[tuple[str, Any], ...]:
-    """The overrides `recon.core.pipeline.make_matcher(method, seed, inner_workers=1)` applies:
-    no final homography, seeded, single-threaded inside (pairs already run in parallel), and the
-    extra-affine `multiview` variant; only fields the matcher's config has (tested to agree)."""
-    import dataclasses
+    """The overrides of the pipeline's matcher for `method` without user options
+    (`recon.core.stages.match.matcher_overrides` with one thread inside), as sorted pairs."""
+    from recon.core.stages.match import matcher_overrides
 
-    probe = get_matcher(method)
-    cfg = getattr(probe, "cfg", None)
-    known = {f.name for f in dataclasses.fields(cfg)} if dataclasses.is_dataclass(cfg) else set()
-    wanted = {"final_homography": False, "seed": int(seed), "workers": 1}
-    out: dict[str, Any] = {k: v for k, v in wanted.items() if k in known}
-    if method == "extra-affine":
-        out["variant"] = "multiview"
-    return tuple(sorted(out.items()))
+    return tuple(sorted(matcher_overrides(method, seed, inner_workers=1).items()))
 
 
 def pair_task_specs(scene: Any, pairs: list[tuple[str, str]], method: str, seed: int, max_size: int | None,

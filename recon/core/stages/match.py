@@ -39,12 +39,16 @@ def match_pair_task(store: FeatureStore, matcher: PairMatcher, name0: str, name1
     return matcher.match(store, name0, name1)
 
 
-def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) -> PairMatcher:
-    """The registry's matcher for multi-view use: no final homography filter (COLMAP verifies),
-    the extra-affine matcher's `multiview` variant, seeded, single-threaded inside when pairs
-    already run in parallel (`inner_workers`), then the user's `cfg.matcher` options on top
-    (`section.field` keys become the registry's `section__field`; deeper ones replace the
-    nested dataclass). A plain method name means `MatchConfig(method=name)`."""
+def matcher_overrides(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1,
+                      num_images: int | None = None) -> dict[str, Any]:
+    """The registry overrides of the multi-view matcher: no final homography filter (COLMAP
+    verifies), the extra-affine matcher's `multiview` variant, seeded, single-threaded inside when
+    pairs already run in parallel (`inner_workers`), then the user's `cfg.matcher` options on top
+    (`section.field` keys become the registry's `section__field`; deeper ones replace the nested
+    dataclass). The extra-affine matcher's adaptive per-pair paths are switched on for scenes of
+    more than `cfg.adaptive_above` images (`num_images`) unless the user set `matcher.adaptive`.
+    Plain picklable data: Dask workers rebuild the same matcher from it. A plain method name
+    means `MatchConfig(method=name)`."""
     cfg = MatchConfig(method=cfg) if isinstance(cfg, str) else cfg
     try:
         probe = get_matcher(cfg.method)
@@ -56,8 +60,13 @@ def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) 
     overrides: dict[str, Any] = {k: v for k, v in wanted.items() if k in known}
     if cfg.method == "extra-affine":
         overrides["variant"] = "multiview"
+        if uses_adaptive_paths(cfg, num_images):
+            overrides["adaptive"] = True
     if cfg.matcher:
-        base = getattr(get_matcher(cfg.method, **overrides), "cfg", None)
+        try:
+            base = getattr(get_matcher(cfg.method, **overrides), "cfg", None)
+        except (TypeError, ValueError) as e:
+            raise UserError(f"matcher options {cfg.matcher}: {e}") from None
         for key, value in cfg.matcher.items():
             section, _, rest = key.partition(".")
             if not rest:
@@ -68,6 +77,21 @@ def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1) 
                 name, _, leaf = rest.partition(".")
                 current = overrides.get(f"{section}__{name}", getattr(getattr(base, section), name))
                 overrides[f"{section}__{name}"] = _replace_path(current, leaf, value)
+    return overrides
+
+
+def uses_adaptive_paths(cfg: MatchConfig, num_images: int | None) -> bool:
+    """Whether the scene's size alone switches the adaptive paths on: more than
+    `cfg.adaptive_above` images (0 = never) and no explicit `matcher.adaptive`."""
+    return (cfg.method == "extra-affine" and "adaptive" not in cfg.matcher and cfg.adaptive_above > 0
+            and num_images is not None and num_images > cfg.adaptive_above)
+
+
+def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1,
+                 num_images: int | None = None) -> PairMatcher:
+    """The registry's matcher for multi-view use, built from `matcher_overrides` (see there)."""
+    cfg = MatchConfig(method=cfg) if isinstance(cfg, str) else cfg
+    overrides = matcher_overrides(cfg, seed, inner_workers, num_images)
     try:
         return get_matcher(cfg.method, **overrides)
     except (TypeError, ValueError) as e:
@@ -105,7 +129,8 @@ class Match:
     def run(self, run: Run) -> None:
         cfg, pairs, store = run.cfg, run.data.pairs, run.data.store
         matcher = run.matcher or make_matcher(cfg.match, cfg.seed,
-                                              inner_workers=1 if len(pairs) >= cfg.num_workers else 0)
+                                              inner_workers=1 if len(pairs) >= cfg.num_workers else 0,
+                                              num_images=len(run.data.scene.images))
         log.debug("matcher: %s", matcher_identity(matcher))
         results, cached = self._match_all(run, matcher, run.cache / "pairs")
         run.data.results, run.data.cached = results, cached
@@ -129,8 +154,10 @@ class Match:
         from recon.core.dask_engine import match_pair_on_worker, pair_task_specs
 
         cfg = run.cfg
+        overrides = tuple(sorted(matcher_overrides(cfg.match, cfg.seed, inner_workers=1,
+                                                   num_images=len(run.data.scene.images)).items()))
         specs = pair_task_specs(run.data.scene, [pairs[i] for i in todo], cfg.match.method, cfg.seed,
-                                cfg.load.max_size or None, run.cache / "features")
+                                cfg.load.max_size or None, run.cache / "features", overrides)
         return {ex.submit(match_pair_on_worker, spec): i for spec, i in zip(specs, todo)}
 
     @staticmethod
