@@ -121,7 +121,9 @@ class MatcherConfig:
         meant to be best (rendered facade-wide: 0.23° instead of 0.11° relative rotation error;
         corner / corner-wide: 66-83 % of the verified inliers per pair), while they cut fountain_P11's
         matching time by half at equal accuracy; `recon run --preset adaptive` (or
-        `--set matcher.adaptive=true`) turns them on (docs/decisions.md, "Adaptive per-pair paths").
+        `--set matcher.adaptive=true`) turns them on, and `recon run` does so by itself on scenes
+        of more than 30 images (`recon.config.MatchConfig.adaptive_above`), which are mostly
+        easy neighbouring pairs (docs/decisions.md, "Adaptive per-pair paths").
 
         No patch refinement either: on fountain_P11 it raised the reprojection error (0.651 ->
         0.711 px) at an equal rotation error (0.233° / 0.234°), though it helped the rendered corner
