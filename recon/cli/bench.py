@@ -194,7 +194,8 @@ def scale_cmd(
     engine: Annotated[str, typer.Option("--engine", help="Engine of the size sweep and the real scenes: "
                                                          "threads:W or dask:W.")] = "threads:2",
     engines: Annotated[str, typer.Option("--engines", help="Engines compared on the --engine-size scene "
-                                                           "(none = no comparison).")]
+                                                           "(none = no comparison); /cvT pins OpenCV to T "
+                                                           "threads per process, e.g. dask:2/cv1.")]
         = "threads:1,threads:2,dask:1,dask:2",
     engine_size: Annotated[int, typer.Option("--engine-size", help="Views of the scene the engines are compared "
                                                                    "on.")] = 50,

@@ -4,7 +4,8 @@
 * `sequential:K`: each image with the next K images in name order (video or walk-around
   captures, where only neighbours overlap).
 * `retrieval:K`, `retrieval:K+sequential:S`, `auto`: appearance retrieval (see
-  `recon.core.retrieval`); `make_pairs` needs its `retrieve` argument for them.
+  `recon.core.retrieval`); `make_pairs` needs its `retrieve` argument for them. `+expand:E`
+  adds match-graph expansion after matching (`recon.core.expansion`, run by the match stage).
 * anything else is a path to a text file (UTF-8) with one pair per line (`read_pairs_file`):
 
   - two image names separated by whitespace: `a.jpg b.jpg`; extra columns (retrieval scores)
@@ -47,6 +48,7 @@ class PairsSpec:
     k: int = 0  # sequential window; for retrieval / auto: neighbours per image
     path: Path | None = None  # file of pairs
     sequential: int = 0  # retrieval: also the next `sequential` images in name order
+    expand: int = 0  # retrieval: match-graph expansion, new partners per image and round (recon.core.expansion)
 
     def __str__(self) -> str:
         if self.kind == "sequential":
@@ -54,7 +56,8 @@ class PairsSpec:
         if self.kind == "file":
             return str(self.path)
         if self.kind == "retrieval":
-            return f"retrieval:{self.k}" + (f"+sequential:{self.sequential}" if self.sequential else "")
+            return (f"retrieval:{self.k}" + (f"+sequential:{self.sequential}" if self.sequential else "")
+                    + (f"+expand:{self.expand}" if self.expand else ""))
         return self.kind
 
 
@@ -68,7 +71,8 @@ def parse_pairs_spec(spec: str) -> PairsSpec:
 
     if is_retrieval_spec(s):
         r = parse_retrieval_spec(s)
-        return PairsSpec("auto" if r.auto else "retrieval", k=r.k, sequential=r.sequential)
+        return PairsSpec("auto" if r.auto else "retrieval", k=r.k, sequential=r.sequential,
+                         expand=r.expand)
     # ---
     if s.startswith("sequential"):
         _, sep, k = s.partition(":")

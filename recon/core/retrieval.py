@@ -71,21 +71,25 @@ class RetrievalSpec:
     """A parsed `retrieval:K[+sequential:S]` or `auto` pair spec.
 
     `k`: nearest neighbours per image (>= 1); `sequential`: also pair each image with the next
-    `sequential` images in name order (0 = none); `auto`: exhaustive for small scenes (see
-    `AUTO_EXHAUSTIVE_MAX_IMAGES`), else retrieval with `k`.
+    `sequential` images in name order (0 = none); `expand`: after matching, each image proposes
+    up to `expand` more partners per round from the match graph (`recon.core.expansion`; 0 =
+    none); `auto`: exhaustive for small scenes (see `AUTO_EXHAUSTIVE_MAX_IMAGES`), else
+    retrieval with `k`.
     """
 
     k: int
     sequential: int = 0
     auto: bool = False
+    expand: int = 0
 
     def __str__(self) -> str:
         if self.auto:
             return "auto"
-        return f"retrieval:{self.k}" + (f"+sequential:{self.sequential}" if self.sequential else "")
+        return (f"retrieval:{self.k}" + (f"+sequential:{self.sequential}" if self.sequential else "")
+                + (f"+expand:{self.expand}" if self.expand else ""))
 
 
-_TERM = re.compile(r"^(retrieval|sequential):(\d+)$")
+_TERM = re.compile(r"^(retrieval|sequential|expand):(\d+)$")
 
 
 def as_retrieval_spec(spec: object) -> RetrievalSpec:
@@ -96,18 +100,19 @@ def as_retrieval_spec(spec: object) -> RetrievalSpec:
     if kind not in ("retrieval", "auto"):
         raise ValueError(f"--pairs {spec}: not a retrieval spec")
     return RetrievalSpec(k=int(getattr(spec, "k", 0)), sequential=int(getattr(spec, "sequential", 0)),
-                         auto=kind == "auto")
+                         auto=kind == "auto", expand=int(getattr(spec, "expand", 0)))
 
 
 def parse_retrieval_spec(spec: str) -> RetrievalSpec:
-    """Parse `auto`, `retrieval:K` or `retrieval:K+sequential:S` (in either order).
+    """Parse `auto`, `retrieval:K`, `retrieval:K+sequential:S`, `retrieval:K+expand:E` or all
+    three (in any order).
 
     Raises ValueError with a one-line message naming the accepted forms.
     """
     s = (spec or "").strip()
     if s == "auto":
         return RetrievalSpec(k=AUTO_K, auto=True)
-    usage = "expected retrieval:K or retrieval:K+sequential:S with integers K >= 1, S >= 1"
+    usage = ("expected retrieval:K, optionally +sequential:S and +expand:E, with integers K, S, E >= 1")
     terms: dict[str, int] = {}
     for term in s.split("+"):
         m = _TERM.match(term.strip())
@@ -116,7 +121,7 @@ def parse_retrieval_spec(spec: str) -> RetrievalSpec:
         terms[m.group(1)] = int(m.group(2))
     if "retrieval" not in terms or any(v < 1 for v in terms.values()):
         raise ValueError(f"--pairs {spec!r}: {usage}")
-    return RetrievalSpec(k=terms["retrieval"], sequential=terms.get("sequential", 0))
+    return RetrievalSpec(k=terms["retrieval"], sequential=terms.get("sequential", 0), expand=terms.get("expand", 0))
 
 
 def is_retrieval_spec(spec: str) -> bool:

@@ -8,7 +8,8 @@ What runs (`plan_runs`):
   above `--max-exhaustive` images is not run (N(N-1)/2 pairs: 19,900 at 200 views) and is
   reported as a `skipped` row, never estimated;
 * **engine comparison**: on the `--engine-size` scene, `--engine-pairs`, every engine of
-  `--engines` (`threads:W`, `dask:W` = a local cluster of W single-thread worker processes);
+  `--engines` (`threads:W`, `dask:W` = a local cluster of W single-thread worker processes;
+  `/cvT` pins OpenCV's own threads to T per process, e.g. `dask:2/cv1`: see EngineSpec);
 * **real scenes** (`--real`: folders, or names under `$RECON_SHARED_DATA/scenes`, default
   castle_P30 and fox) with `--real-pairs` (default `auto`); a missing folder is a `skipped` row.
 
@@ -89,9 +90,14 @@ class EngineSpec:
     """`threads` or `dask` (a local cluster started by the run)."""
     workers: int
     """Parallel tasks: threads of the pool, or single-thread Dask worker processes."""
+    opencv_threads: int = 0
+    """OpenCV's own threads per process (`OPENCV_FOR_THREADS_NUM` of the run and its Dask
+    workers); 0 = OpenCV's default (one per core). OpenCV parallelises SIFT and warps inside a
+    task, so on a small machine one worker already keeps several cores partly busy; pinning it to
+    1 (`dask:2/cv1`) measures the engine's own scaling, as on a cluster of single-core workers."""
 
     def __str__(self) -> str:
-        return f"{self.engine}:{self.workers}"
+        return f"{self.engine}:{self.workers}" + (f"/cv{self.opencv_threads}" if self.opencv_threads else "")
 
 
 def parse_sizes(text: str) -> list[int]:
@@ -130,17 +136,19 @@ def parse_pairs_modes(text: str, option: str = "--pairs") -> list[str]:
 
 
 def parse_engines(text: str, option: str = "--engines") -> list[EngineSpec]:
-    """`threads:2,dask:1` -> [EngineSpec("threads", 2), EngineSpec("dask", 1)]; `none` -> []."""
+    """`threads:2,dask:1/cv1` -> [EngineSpec("threads", 2), EngineSpec("dask", 1, opencv_threads=1)];
+    `none` -> []."""
     if text.strip().lower() in ("", "none"):
         return []
     out = []
     for item in (t.strip() for t in text.split(",")):
         if not item:
             continue
-        m = re.fullmatch(r"(threads|dask):(\d+)", item)
-        if not m or int(m.group(2)) < 1:
-            raise UserError(f"{option} {item!r}: expected threads:W or dask:W with W >= 1 workers, e.g. dask:2")
-        out.append(EngineSpec(m.group(1), int(m.group(2))))
+        m = re.fullmatch(r"(threads|dask):(\d+)(?:/cv(\d+))?", item)
+        if not m or int(m.group(2)) < 1 or (m.group(3) is not None and int(m.group(3)) < 1):
+            raise UserError(f"{option} {item!r}: expected threads:W or dask:W with W >= 1 workers, optionally "
+                            f"/cvT for T >= 1 OpenCV threads per process, e.g. dask:2 or dask:2/cv1")
+        out.append(EngineSpec(m.group(1), int(m.group(2)), int(m.group(3) or 0)))
     return list(dict.fromkeys(out))
 
 
@@ -181,11 +189,15 @@ class RunSpec:
     """`--workers`: threads, or Dask worker processes."""
     group: str
     """Why it runs: `size` (the sweep), `engine` (the engine comparison) or `real`."""
+    opencv_threads: int = 0
+    """OpenCV threads per process (EngineSpec.opencv_threads); 0 = OpenCV's default."""
 
     @property
     def config(self) -> str:
-        """A folder-safe name of (pairs, engine, workers), e.g. `retrieval-10_dask-2`."""
-        return re.sub(r"[^A-Za-z0-9]+", "-", self.pairs).strip("-") + f"_{self.engine}-{self.workers}"
+        """A folder-safe name of (pairs, engine, workers), e.g. `retrieval-10_dask-2` (`_cv1` appended
+        when OpenCV is pinned to one thread)."""
+        return (re.sub(r"[^A-Za-z0-9]+", "-", self.pairs).strip("-") + f"_{self.engine}-{self.workers}"
+                + (f"_cv{self.opencv_threads}" if self.opencv_threads else ""))
 
 
 def plan_runs(out: Path, sizes: Sequence[int], pairs_modes: Sequence[str], engine: EngineSpec,
@@ -197,14 +209,15 @@ def plan_runs(out: Path, sizes: Sequence[int], pairs_modes: Sequence[str], engin
     skipped: list[dict[str, Any]] = []
 
     def add(spec: RunSpec) -> None:
-        same = [r for r in runs if (r.scene, r.pairs, r.engine, r.workers) == (spec.scene, spec.pairs, spec.engine,
-                                                                              spec.workers)]
+        same = [r for r in runs if (r.scene, r.pairs, r.engine, r.workers, r.opencv_threads)
+                == (spec.scene, spec.pairs, spec.engine, spec.workers, spec.opencv_threads)]
         if not same:
             runs.append(spec)
 
     def skip(scene: str, kind: str, n: int | None, pairs: str, eng: EngineSpec, group: str, reason: str) -> None:
         skipped.append({"scene": scene, "kind": kind, "num_images": n, "pairs_spec": pairs, "engine": eng.engine,
-                        "workers": eng.workers, "group": group, "status": "skipped", "reason": reason})
+                        "workers": eng.workers, "opencv_threads": eng.opencv_threads, "group": group,
+                        "status": "skipped", "reason": reason})
 
     def rendered(n: int) -> str:
         return str(out / "scenes" / f"orbit-{n}")
@@ -215,7 +228,8 @@ def plan_runs(out: Path, sizes: Sequence[int], pairs_modes: Sequence[str], engin
                 skip(f"orbit-{n}", "rendered", n, mode, engine, "size",
                      f"exhaustive above --max-exhaustive {max_exhaustive} images ({n * (n - 1) // 2} pairs): not run")
                 continue
-            add(RunSpec(f"orbit-{n}", "rendered", rendered(n), mode, engine.engine, engine.workers, "size"))
+            add(RunSpec(f"orbit-{n}", "rendered", rendered(n), mode, engine.engine, engine.workers, "size",
+                        engine.opencv_threads))
     if engine_size and engines:
         for eng in engines:
             if engine_pairs == "exhaustive" and engine_size > max_exhaustive:
@@ -223,12 +237,13 @@ def plan_runs(out: Path, sizes: Sequence[int], pairs_modes: Sequence[str], engin
                      f"exhaustive above --max-exhaustive {max_exhaustive} images: not run")
                 continue
             add(RunSpec(f"orbit-{engine_size}", "rendered", rendered(engine_size), engine_pairs, eng.engine,
-                        eng.workers, "engine"))
+                        eng.workers, "engine", eng.opencv_threads))
     for label, path in real:
         if not path.is_dir():
             skip(label, "real", None, real_pairs, engine, "real", f"{path}: no such folder (shared data absent)")
             continue
-        add(RunSpec(label, "real", str(path), real_pairs, engine.engine, engine.workers, "real"))
+        add(RunSpec(label, "real", str(path), real_pairs, engine.engine, engine.workers, "real",
+                    engine.opencv_threads))
     return runs, skipped
 
 
@@ -283,7 +298,8 @@ def fingerprint(spec: RunSpec, seed: int, max_size: int, image_size: tuple[int, 
     return {"scene": spec.scene, "scene_dir": spec.scene_dir if spec.kind == "real" else
             f"rendered {image_size[0]}x{image_size[1]}, seed {seed}",
             "pairs": spec.pairs, "engine": spec.engine,
-            "workers": spec.workers, "seed": seed, "max_size": max_size}
+            "workers": spec.workers, "seed": seed, "max_size": max_size,
+            **({"opencv_threads": spec.opencv_threads} if spec.opencv_threads else {})}
 
 
 def run_command(spec: RunSpec, run_dir: Path, seed: int, max_size: int) -> list[str]:
@@ -293,12 +309,22 @@ def run_command(spec: RunSpec, run_dir: Path, seed: int, max_size: int) -> list[
             "--max-size", str(max_size), "--no-progress"]
 
 
-def _child_env() -> dict[str, str]:
-    """This environment with the project root first on PYTHONPATH (the subprocess imports this checkout)."""
+def _child_env(opencv_threads: int = 0) -> dict[str, str]:
+    """This environment with the project root first on PYTHONPATH (the subprocess imports this
+    checkout) and, when `opencv_threads` > 0, OpenCV pinned to that many threads in the run and
+    in the Dask worker processes it starts (they inherit the environment)."""
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join([root, *[p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]])
+    if opencv_threads:
+        env["OPENCV_FOR_THREADS_NUM"] = str(opencv_threads)
     return env
+
+
+def engine_label(row: dict[str, Any]) -> str:
+    """`threads:2`, `dask:1/cv1`: a row's engine as `--engines` spells it."""
+    cv = int(row.get("opencv_threads") or 0)
+    return f"{row['engine']}:{row['workers']}" + (f"/cv{cv}" if cv else "")
 
 
 def row_of(spec: RunSpec, report: dict[str, Any] | None, run_dir: Path, wall: float, peak_mb: float | None,
@@ -382,7 +408,7 @@ def run_one(spec: RunSpec, out: Path, seed: int, max_size: int, recompute: bool,
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with open(run_dir.parent / f"{spec.config}.log", "wb") as logf:
-        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=_child_env())
+        proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=_child_env(spec.opencv_threads))
         with TreePeak(proc.pid) as peak:
             rc, cpu = _wait_with_cpu(proc)
     wall = time.perf_counter() - t0
@@ -452,8 +478,7 @@ def _ok(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def summarise(rows: Sequence[dict[str, Any]], engine: EngineSpec) -> dict[str, Any]:
     """Growth exponents per pair selection, engine ratios and issue 10's target checks."""
     done = _ok(rows)
-    sweep = [r for r in done if r["kind"] == "rendered" and r["engine"] == engine.engine
-             and r["workers"] == engine.workers]
+    sweep = [r for r in done if r["kind"] == "rendered" and engine_label(r) == str(engine)]
     fits: dict[str, Any] = {}
     for mode in dict.fromkeys(r["pairs_spec"] for r in sweep):
         pts = sorted((r["num_images"], r["seconds_total"]) for r in sweep if r["pairs_spec"] == mode)
@@ -465,21 +490,25 @@ def summarise(rows: Sequence[dict[str, Any]], engine: EngineSpec) -> dict[str, A
     eng_rows = [r for r in done if r["kind"] == "rendered"]
     by_key: dict[tuple[str, str], dict[str, dict[str, Any]]] = {}
     for r in eng_rows:
-        by_key.setdefault((r["scene"], r["pairs_spec"]), {})[f"{r['engine']}:{r['workers']}"] = r
+        by_key.setdefault((r["scene"], r["pairs_spec"]), {})[engine_label(r)] = r
     for (scene, mode), d in by_key.items():
         if len(d) < 2:
             continue
         e: dict[str, Any] = {"runs": {k: {"match_seconds": v.get("match_seconds"), "seconds_total": v.get("seconds_total"),
                                          "wall_seconds": v.get("wall_seconds"), "peak_tree_mb": v.get("peak_tree_mb")}
                                      for k, v in d.items()}}
-        if "dask:1" in d and "dask:2" in d:
-            e["dask_2_over_1_match_speedup"] = _ratio(d["dask:1"].get("match_seconds"), d["dask:2"].get("match_seconds"))
-        for w in (1, 2):
-            if f"dask:{w}" in d and f"threads:{w}" in d:
-                e[f"dask_over_threads_{w}_match"] = _ratio(d[f"dask:{w}"].get("match_seconds"),
-                                                           d[f"threads:{w}"].get("match_seconds"))
-                e[f"dask_over_threads_{w}_total"] = _ratio(d[f"dask:{w}"].get("seconds_total"),
-                                                           d[f"threads:{w}"].get("seconds_total"))
+        for cv in sorted({lab.partition("/")[2] for lab in d}):  # "" (OpenCV's default), "cv1", ...
+            suf = f"/{cv}" if cv else ""
+            tag = f"_{cv}" if cv else ""
+            if f"dask:1{suf}" in d and f"dask:2{suf}" in d:
+                e[f"dask_2_over_1_match_speedup{tag}"] = _ratio(d[f"dask:1{suf}"].get("match_seconds"),
+                                                                d[f"dask:2{suf}"].get("match_seconds"))
+            for w in (1, 2):
+                if f"dask:{w}{suf}" in d and f"threads:{w}{suf}" in d:
+                    e[f"dask_over_threads_{w}_match{tag}"] = _ratio(d[f"dask:{w}{suf}"].get("match_seconds"),
+                                                                    d[f"threads:{w}{suf}"].get("match_seconds"))
+                    e[f"dask_over_threads_{w}_total{tag}"] = _ratio(d[f"dask:{w}{suf}"].get("seconds_total"),
+                                                                    d[f"threads:{w}{suf}"].get("seconds_total"))
         engines[f"{scene} {mode}"] = e
     return {"fits": fits, "engines": engines, "targets": check_targets(done, fits, engines)}
 
@@ -515,10 +544,12 @@ def check_targets(done: Sequence[dict[str, Any]], fits: dict[str, Any], engines:
             out.append({"target": "castle_P30: 30/30 registered", "value": f"{r['registered']}/{r['num_images']}, "
                         f"rot. err. {_fmt(r.get('rot_err_deg_median'), '.3f')} deg", "met": r["registered"] == 30})
     for key, e in engines.items():
-        s = e.get("dask_2_over_1_match_speedup")
-        if s is not None:
-            out.append({"target": f"Dask 2 workers >= 1.8x one on the match stage ({key})", "value": f"{s:.2f}x",
-                        "met": s >= 1.8})
+        for name, s in e.items():
+            if name.startswith("dask_2_over_1_match_speedup") and s is not None:
+                pinned = name.removeprefix("dask_2_over_1_match_speedup").strip("_")
+                how = f", OpenCV pinned to {pinned.removeprefix('cv')} thread(s) per process" if pinned else ""
+                out.append({"target": f"Dask 2 workers >= 1.8x one on the match stage ({key}{how})",
+                            "value": f"{s:.2f}x", "met": s >= 1.8})
         for w in (1, 2):
             q = e.get(f"dask_over_threads_{w}_match")
             if q is not None:
@@ -592,7 +623,7 @@ def scale_table(result: dict[str, Any]) -> Any:
                 "total", "wall", "CPU s", "peak MB", "registered", "rot. err °"):
         t.add_column(col, justify="left" if col in ("scene", "pairs", "engine") else "right")
     for r in sorted(result["rows"], key=_row_order):
-        eng = f"{r['engine']}:{r['workers']}"
+        eng = engine_label(r)
         if r.get("status") == "skipped" or r.get("status") == "error":
             t.add_row(r["scene"], _fmt(r.get("num_images"), "d"), r["pairs_spec"], eng,
                       f"[dim]{r['status']}: {r.get('reason', '')}[/dim]", *[""] * 12)
@@ -613,7 +644,8 @@ def _other_seconds(r: dict[str, Any]) -> float | None:
 
 
 def _row_order(r: dict[str, Any]) -> tuple:
-    return (r["kind"] != "rendered", r.get("num_images") or 0, r["scene"], r["pairs_spec"], r["engine"], r["workers"])
+    return (r["kind"] != "rendered", r.get("num_images") or 0, r["scene"], r["pairs_spec"], r["engine"], r["workers"],
+            int(r.get("opencv_threads") or 0))
 
 
 def targets_lines(result: dict[str, Any]) -> list[str]:
@@ -641,7 +673,7 @@ def plot_scale(result: dict[str, Any], path: Path) -> Path | None:
     cfg = result["config"]
     done = [r for r in _ok(result["rows"]) if r.get("seconds_total")]
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    sweep = [r for r in done if r["kind"] == "rendered" and f"{r['engine']}:{r['workers']}" == cfg["engine"]]
+    sweep = [r for r in done if r["kind"] == "rendered" and engine_label(r) == cfg["engine"]]
     for mode in dict.fromkeys(r["pairs_spec"] for r in sweep):
         pts = sorted((r["num_images"], r["seconds_total"]) for r in sweep if r["pairs_spec"] == mode)
         b = fit_exponent(pts)

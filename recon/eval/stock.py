@@ -211,6 +211,9 @@ class StockMatch(_Always):
                                       pairing_options=pycolmap.ExhaustivePairingOptions(),
                                       verification_options=vo, device=pycolmap.Device.cpu)
         else:
+            if "expand:" in run.cfg.pairs.spec:
+                run.warn(f"--pairs {run.cfg.pairs.spec}: stock COLMAP matches the proposed pairs only "
+                         f"(match-graph expansion is recon's)")
             pairs, warnings = _write_pairs_file(run.out / "pairs.txt", pairs)
             for w in warnings:
                 run.warn(w)

@@ -11,8 +11,14 @@ has none and always runs. Results are collected in pair order, never completion 
 fixed seed gives the same output whatever the scheduling. One failing pair is a warning and an
 empty result, never the end of the run.
 
+With `--pairs retrieval:K+expand:E` the stage then runs match-graph expansion rounds
+(`recon.core.expansion`): each round appends the pairs the matched ones say overlap to
+`pairs` (after the proposed ones, in a fixed order) and matches them the same way, so a resumed
+run finds the same rounds in the pair cache. `report.pairs_expanded` holds the new pairs of
+each round.
+
 Options: `match.method` and `match.matcher` (the matcher's own options, see `make_matcher`),
-`match.engine`, `workers`, `seed`.
+`match.engine`, `workers`, `seed`, and the `+expand:E` term of `pairs.spec`.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from matching.store import FeatureStore
 from matching.types import PairResult
 from recon.config import MatchConfig
 from recon.core.context import Run
+from recon.core.expansion import ExpansionConfig, expand
 from recon.core.paircache import load_pair_result, pair_cache_key, result_to_full_res, save_pair_result
 from recon.errors import UserError
 
@@ -134,6 +141,8 @@ class Match:
         log.debug("matcher: %s", matcher_identity(matcher))
         results, cached = self._match_all(run, matcher, run.cache / "pairs")
         run.data.results, run.data.cached = results, cached
+        self._expand(run, matcher)
+        pairs, cached = run.data.pairs, run.data.cached
         report = run.report
         report.pairs_cached = int(sum(cached))
         report.pairs_computed = len(pairs) - report.pairs_cached
@@ -141,6 +150,31 @@ class Match:
         if store.persist_error is not None:
             run.warn(f"the feature cache could not be written ({store.persist_error}); features were kept in memory")
         return None
+
+    @staticmethod
+    def _expand(run: Run, matcher: PairMatcher) -> None:
+        """Match-graph expansion rounds for a `+expand:E` pairs spec (see module doc)."""
+        from recon.core.pairs import parse_pairs_spec
+
+        spec = parse_pairs_spec(run.cfg.pairs.spec)
+        if spec.kind != "retrieval" or spec.expand < 1:
+            return
+        ecfg = ExpansionConfig(per_image=spec.expand)
+
+        def match_round(new: list[tuple[str, str]]) -> list[int]:
+            first = len(run.data.pairs)
+            run.data.pairs = run.data.pairs + new
+            results, cached = Match._match_all(run, matcher, run.cache / "pairs", first)
+            run.data.results = run.data.results + results
+            run.data.cached = run.data.cached + cached
+            counts = [r.num_matches for r in results]
+            run.report.pairs_expanded.append(len(new))
+            log.info("expansion round %d: %d new pairs, %d with >= %d matches", len(run.report.pairs_expanded),
+                     len(new), sum(1 for n in counts if n >= ecfg.min_matches), ecfg.min_matches)
+            return counts
+
+        matched = {p: r.num_matches for p, r in zip(run.data.pairs, run.data.results)}
+        expand(run.data.scene.names, matched, match_round, ecfg)
 
     @staticmethod
     def _submit(run: Run, matcher: PairMatcher, todo: list[int]) -> dict[Future, int]:
@@ -161,18 +195,23 @@ class Match:
         return {ex.submit(match_pair_on_worker, spec): i for spec, i in zip(specs, todo)}
 
     @staticmethod
-    def _match_all(run: Run, matcher: PairMatcher, pair_dir: Path) -> tuple[list[PairResult], list[bool]]:
-        """All pairs, from the cache or computed on the executor; results in pair order."""
+    def _match_all(run: Run, matcher: PairMatcher, pair_dir: Path, first: int = 0
+                   ) -> tuple[list[PairResult], list[bool]]:
+        """The pairs `run.data.pairs[first:]`, from the cache or computed on the executor; their
+        results and cache flags in pair order (indices in events and tasks are the global ones)."""
         pairs = run.data.pairs
-        advance = run.bar(len(pairs))
+        advance = run.bar(len(pairs) - first)
         images = {im.name: im for im in run.data.scene.images}
         mid = matcher_identity(matcher)
         results: list[PairResult | None] = [None] * len(pairs)
         cached = [False] * len(pairs)
-        paths = [pair_dir / f"{pair_cache_key(mid, images[a], images[b])}.npz" for a, b in pairs]
+        paths = [pair_dir / f"{pair_cache_key(mid, images[a], images[b])}.npz" if i >= first else None
+                 for i, (a, b) in enumerate(pairs)]
         todo: list[int] = []
         for i, (a, b) in enumerate(pairs):
-            r = load_pair_result(paths[i])
+            if i < first:
+                continue
+            r = load_pair_result(paths[i])  # type: ignore[arg-type]
             if r is None:
                 todo.append(i)
                 continue
@@ -198,9 +237,10 @@ class Match:
                             advance()
                             continue
                         full = result_to_full_res(raw, images[a], images[b])
-                        save_pair_result(paths[i], full)
+                        path = cast(Path, paths[i])
+                        save_pair_result(path, full)
                         # use exactly what a resumed run would load, so both give identical output
-                        r = results[i] = load_pair_result(paths[i]) or full
+                        r = results[i] = load_pair_result(path) or full
                         advance()
                         log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
                                   r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
@@ -209,4 +249,4 @@ class Match:
                 for f in pending:
                     f.cancel()
                 raise
-        return cast(list[PairResult], results), cached  # every slot is filled above
+        return cast(list[PairResult], results[first:]), cached[first:]  # every slot from `first` is filled above
