@@ -101,7 +101,8 @@ class PairsConfig:
 
     spec: str = field(default="auto", metadata={"flag": "--pairs"})
     """auto (exhaustive up to 30 images, retrieval:10 above), exhaustive, sequential:K, retrieval:K,
-    retrieval:K+sequential:S, or a file of name pairs."""
+    retrieval:K+sequential:S, retrieval:K+expand:E (then up to E more partners per image and
+    round from the match graph), or a file of name pairs."""
 
     def __post_init__(self) -> None:
         from recon.core.pairs import parse_pairs_spec

@@ -97,6 +97,21 @@ def test_user_matcher_options_reach_the_workers(scene5, tmp_path):
     _same(match_pair_task(store, driver, *PAIRS6[1]), D.match_pair_on_worker(spec))
 
 
+def _opencv_threads() -> int:
+    import cv2
+
+    return int(cv2.getNumThreads())
+
+
+def test_local_workers_share_the_cores_between_their_opencv_pools():
+    assert D.local_worker_env(2, cpu_count=2, environ={}) == {"OPENCV_FOR_THREADS_NUM": "1"}
+    assert D.local_worker_env(1, cpu_count=8, environ={}) == {"OPENCV_FOR_THREADS_NUM": "8"}
+    assert D.local_worker_env(3, cpu_count=8, environ={}) == {"OPENCV_FOR_THREADS_NUM": "2"}
+    assert D.local_worker_env(16, cpu_count=8, environ={}) == {"OPENCV_FOR_THREADS_NUM": "1"}
+    # the user's own setting wins (the workers inherit it)
+    assert D.local_worker_env(2, cpu_count=8, environ={"OPENCV_FOR_THREADS_NUM": "3"}) == {}
+
+
 @pytest.mark.slow
 def test_dask_equals_threads_and_survives_a_killed_worker(scene5, tmp_path):
     scene, ref, out = scene5
@@ -104,6 +119,9 @@ def test_dask_equals_threads_and_survives_a_killed_worker(scene5, tmp_path):
     with D.make_dask_executor(None, 2) as engine:
         assert engine.dashboard_link and engine.dashboard_link.startswith("http")
         assert engine.num_workers == 2
+        # 0. each worker's OpenCV pool is its share of the cores (no oversubscription)
+        want = int(os.environ.get("OPENCV_FOR_THREADS_NUM") or max(1, (os.cpu_count() or 1) // 2))
+        assert set(engine.client.run(_opencv_threads).values()) == {want}
         # 1. same seed, byte-identical results to the thread pool
         futs = [engine.executor.submit(D.match_pair_on_worker, s) for s in specs]
         got = [f.result(timeout=600) for f in futs]

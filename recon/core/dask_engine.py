@@ -5,7 +5,8 @@
 (`submit`, `wait(FIRST_COMPLETED)`, results in pair order) runs unchanged on it:
 
 * no address: a `LocalCluster` of `workers` worker PROCESSES with one thread each
-  (`processes=True, threads_per_worker=1`; OpenCV still uses its own threads inside a task),
+  (`processes=True, threads_per_worker=1`), OpenCV's own thread pool in each sized to
+  cores // workers (`local_worker_env`),
   and the dashboard on a free port (`dashboard_address=":0"`, so two runs never collide);
 * an address (`tcp://HOST:8786`): `Client(address)` on an existing scheduler.
 
@@ -48,6 +49,7 @@ them in its own cache folder); only the driver reads the images' pair results an
 
 from __future__ import annotations
 
+import os
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -283,6 +285,22 @@ def parse_dask_engine(spec: str) -> str | None:
     raise ValueError(f"--engine {spec!r}: expected dask or dask:ADDRESS (e.g. dask:tcp://HOST:8786)")
 
 
+def local_worker_env(workers: int, cpu_count: int | None = None,
+                     environ: dict[str, str] | None = None) -> dict[str, str]:
+    """Environment of a LocalCluster's worker processes: OpenCV's own thread pool sized to this
+    machine's share per worker (`OPENCV_FOR_THREADS_NUM` = max(1, cores // workers)), unless the
+    user set the variable. Dask already pins OMP/MKL/OpenBLAS to one thread per worker for the
+    same reason; OpenCV's pthreads pool is not covered, and W workers each running SIFT and
+    warps on every core oversubscribe the machine. Measured on orbit-50, retrieval:10, 2 cores
+    (`recon bench scale --engines dask:1/cv1,dask:2/cv1`): 2 workers at one OpenCV thread each
+    match in 191 s against 229 s at OpenCV's default; 1 worker is the same either way (354 / 358 s)."""
+    env = dict(os.environ if environ is None else environ)
+    if env.get("OPENCV_FOR_THREADS_NUM"):
+        return {}
+    cores = cpu_count or os.cpu_count() or 1
+    return {"OPENCV_FOR_THREADS_NUM": str(max(1, cores // max(1, workers)))}
+
+
 def make_dask_executor(address: str | None, workers: int) -> DaskEngine:
     """A DaskEngine: a LocalCluster of `workers` single-thread worker processes when `address`
     is None, else a client of the scheduler at `address`. Raises ImportError with the install
@@ -293,8 +311,9 @@ def make_dask_executor(address: str | None, workers: int) -> DaskEngine:
         raise ImportError("the dask engine needs dask[distributed]: pip install 'dask[distributed]'") from e
     if address:
         return DaskEngine(Client(address))
-    cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
-                           dashboard_address=":0", silence_logs=40)
+    n = max(1, int(workers))
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                           dashboard_address=":0", silence_logs=40, env=local_worker_env(n))
     try:
         return DaskEngine(Client(cluster), cluster)
     except BaseException:
