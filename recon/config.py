@@ -100,7 +100,7 @@ class PairsConfig:
     """The pairs stage: which image pairs are matched."""
 
     spec: str = field(default="auto", metadata={"flag": "--pairs"})
-    """auto (exhaustive up to 30 images, retrieval:10 above), exhaustive, sequential:K, retrieval:K,
+    """auto (exhaustive up to 20 images, retrieval:10 above), exhaustive, sequential:K, retrieval:K,
     retrieval:K+sequential:S, retrieval:K+expand:E (then up to E more partners per image and
     round from the match graph), or a file of name pairs."""
 

@@ -13,8 +13,8 @@ What runs (`plan_runs`):
 * **real scenes** (`--real`: folders, or names under `$RECON_SHARED_DATA/scenes`, default
   castle_P30 and fox) with `--real-pairs` (default `auto`); a missing folder is a `skipped` row.
 
-Each run is a fresh `python -m recon run SCENE --out OUT/runs/<scene>/<config> --overwrite`
-subprocess (so its memory is its own and a Dask cluster is started and stopped inside it), and
+Each run is a fresh `python -m recon run SCENE --out OUT/runs/<scene>/<config> --overwrite
+--clean-cache` subprocess (no feature or pair cache of an earlier run in the folder is reused) (so its memory is its own and a Dask cluster is started and stopped inside it), and
 its `report.json` gives pairs, seconds per stage, registered images. Measured here:
 
 * `wall_seconds`: the subprocess's wall time (includes interpreter start and, for Dask, the
@@ -304,7 +304,7 @@ def fingerprint(spec: RunSpec, seed: int, max_size: int, image_size: tuple[int, 
 
 def run_command(spec: RunSpec, run_dir: Path, seed: int, max_size: int) -> list[str]:
     """The `python -m recon run ...` command line of one benchmark run."""
-    return [sys.executable, "-m", "recon", "run", spec.scene_dir, "--out", str(run_dir), "--overwrite",
+    return [sys.executable, "-m", "recon", "run", spec.scene_dir, "--out", str(run_dir), "--overwrite", "--clean-cache",
             "--pairs", spec.pairs, "--engine", spec.engine, "--workers", str(spec.workers), "--seed", str(seed),
             "--max-size", str(max_size), "--no-progress"]
 
