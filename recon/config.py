@@ -129,8 +129,8 @@ class MatchConfig:
     (`matching.adaptive`, the `adaptive` preset: pairs whose originals already match well skip the
     simulated views) unless `matcher.adaptive` is set; 0 = never. Large captures are mostly easy
     neighbouring pairs, where the full grid costs time for nothing (README, "Scale"); small ones
-    keep the full grid, which measures best on wide baselines. The same size as `--pairs auto`'s
-    switch to retrieval."""
+    keep the full grid, which measures best on wide baselines. 30, not `--pairs auto`'s 20: the
+    benchmark scenes of up to 30 images keep the full grid they were measured with."""
 
     matcher: dict[str, Any] = field(default_factory=dict)
     """The matcher's own options by field name, e.g. {"fine_top_k": 3, "coarse.rank_by": "matches"}

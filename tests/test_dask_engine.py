@@ -112,6 +112,41 @@ def test_local_workers_share_the_cores_between_their_opencv_pools():
     assert D.local_worker_env(2, cpu_count=8, environ={"OPENCV_FOR_THREADS_NUM": "3"}) == {}
 
 
+_DRIVER_IMPORTING_CV2 = """
+import cv2  # at the top, as `python -m recon` does: a spawned worker re-imports this module
+from recon.core.dask_engine import make_dask_executor
+
+
+def opencv_threads():
+    import cv2
+
+    return cv2.getNumThreads()
+
+
+if __name__ == "__main__":
+    with make_dask_executor(None, 2) as engine:
+        print(sorted(engine.client.run(opencv_threads).values()))
+"""
+
+
+@pytest.mark.slow
+def test_local_workers_opencv_pools_when_the_driver_imported_cv2_first(tmp_path):
+    """The workers' OpenCV pools are their share of the cores even when the driver's main module
+    imports cv2 (a variable set after spawning comes too late: OpenCV reads it once, on load)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "driver.py"
+    script.write_text(_DRIVER_IMPORTING_CV2)
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FOR_THREADS_NUM"}
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
+    out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    want = max(1, (os.cpu_count() or 1) // 2)
+    assert out.stdout.strip().splitlines()[-1] == str([want, want])
+
+
 @pytest.mark.slow
 def test_dask_equals_threads_and_survives_a_killed_worker(scene5, tmp_path):
     scene, ref, out = scene5

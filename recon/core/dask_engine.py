@@ -290,10 +290,12 @@ def local_worker_env(workers: int, cpu_count: int | None = None,
     """Environment of a LocalCluster's worker processes: OpenCV's own thread pool sized to this
     machine's share per worker (`OPENCV_FOR_THREADS_NUM` = max(1, cores // workers)), unless the
     user set the variable. Dask already pins OMP/MKL/OpenBLAS to one thread per worker for the
-    same reason; OpenCV's pthreads pool is not covered, and W workers each running SIFT and
-    warps on every core oversubscribe the machine. Measured on orbit-50, retrieval:10, 2 cores
-    (`recon bench scale --engines dask:1/cv1,dask:2/cv1`): 2 workers at one OpenCV thread each
-    match in 191 s against 229 s at OpenCV's default; 1 worker is the same either way (354 / 358 s)."""
+    same reason; OpenCV's pthreads pool is not covered, and W workers each starting a pool of one
+    thread per core put W x cores threads on the machine. OpenCV reads the variable on its first
+    parallel call, so Nanny's `env` (applied before any task) is in time (a test checks it with a
+    driver that imports cv2 first). On 2 cores it changes nothing measurable (orbit-50,
+    retrieval:10, 2 workers: 228 s match stage by default, 226 s pinned to one thread each);
+    it guards machines with many cores and workers."""
     env = dict(os.environ if environ is None else environ)
     if env.get("OPENCV_FOR_THREADS_NUM"):
         return {}

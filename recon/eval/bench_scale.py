@@ -14,8 +14,9 @@ What runs (`plan_runs`):
   castle_P30 and fox) with `--real-pairs` (default `auto`); a missing folder is a `skipped` row.
 
 Each run is a fresh `python -m recon run SCENE --out OUT/runs/<scene>/<config> --overwrite
---clean-cache` subprocess (no feature or pair cache of an earlier run in the folder is reused) (so its memory is its own and a Dask cluster is started and stopped inside it), and
-its `report.json` gives pairs, seconds per stage, registered images. Measured here:
+--clean-cache` subprocess: no feature or pair cache of an earlier run in the folder is reused, its
+memory is its own and a Dask cluster is started and stopped inside it; its `report.json`
+gives pairs, seconds per stage, registered images. Measured here:
 
 * `wall_seconds`: the subprocess's wall time (includes interpreter start and, for Dask, the
   cluster's start and stop; `seconds_total` is the report's own, from load to export);
