@@ -132,7 +132,9 @@ if __name__ == "__main__":
 @pytest.mark.slow
 def test_local_workers_opencv_pools_when_the_driver_imported_cv2_first(tmp_path):
     """The workers' OpenCV pools are their share of the cores even when the driver's main module
-    imports cv2 (a variable set after spawning comes too late: OpenCV reads it once, on load)."""
+    imports cv2, which a spawned worker re-imports before Nanny applies its `env` (OpenCV reads
+    the variable on its first parallel call, so the variable must reach the workers before any
+    task; without `env=local_worker_env(n)` this fails on a machine of 2 or more cores)."""
     import subprocess
     import sys
     from pathlib import Path
