@@ -22,13 +22,26 @@ Conventions, converted here (measured on rendered Gaussian blobs, tests/test_col
   change them: graf 1-2, 21 correct matches across the two against 1737 within COLMAP's), so they
   are only matched against features of this same detector (`fine.FineConfig.original_detector`).
 
-pycolmap holds the GIL while it extracts (a covariant extraction of an 800x600 image takes a few
-seconds), and the extractor is created per call; calls are serialised by the caller's SIFT gate
-(`matching.features.detect`). pycolmap is imported on first use, after cv2 (importing it first
-breaks OpenCV's PNG writes).
+pycolmap holds the GIL while it extracts (a covariant extraction takes about 3 CPU s on an 800x600
+image, 12 s at 1600x1067, 7.5 of them domain-size pooling), so in-process calls run one at a time
+and stall every other Python thread meanwhile: two threads extracting take twice one's time.
+Inside `extraction_processes(n)` extractions run in `n` spawned child processes instead (the
+`recon` match stage opens it for its pair threads): the caller's thread waits without the GIL,
+`n` extractions run side by side, and the output is bit-identical (the same code, single-threaded
+in the child). The extractor is created per call. pycolmap is imported on first use, after cv2
+(importing it first breaks OpenCV's PNG writes).
 """
 
 from __future__ import annotations
+
+import multiprocessing
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 
 import numpy as np
 from numpy.typing import NDArray
@@ -61,16 +74,85 @@ Frames = tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], ND
 """(keypoints (N, 2) px, sizes (N,) px, angles (N,) degrees, descriptors (N, 128) float32)."""
 
 
+_pool: ProcessPoolExecutor | None = None
+_pool_guard = threading.Lock()
+_in_process = threading.Lock()  # in this process pycolmap holds the GIL: one extraction at a time
+
+
+def _child_init(min_log_level: int | None) -> None:
+    """A child of `extraction_processes`: Ctrl-C and SIGTERM are the parent's to handle (it kills
+    the children when its block ends early), cv2 is imported before pycolmap (module doc), and
+    COLMAP logs at the parent's level (`recon.log.quiet_colmap` keeps it to fatal messages)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    import cv2  # noqa: F401
+    import pycolmap
+
+    if min_log_level is not None:
+        pycolmap.logging.minloglevel = min_log_level
+
+
+@contextmanager
+def extraction_processes(n: int) -> Iterator[None]:
+    """While the block runs, `detect_colmap_sift` extracts in `n` spawned child processes (see the
+    module doc); n <= 0, a block already open, or a daemonic process (a Dask worker, which may not
+    have children) keep extracting in this process. The children start on the first extraction;
+    they are shut down when the block ends, and killed at once when it ends with an exception
+    (Ctrl-C), so an interrupted run does not wait for their extractions."""
+    global _pool
+    with _pool_guard:
+        own = n > 0 and _pool is None and not multiprocessing.current_process().daemon
+        if own:
+            parent_colmap = sys.modules.get("pycolmap")
+            level = int(parent_colmap.logging.minloglevel) if parent_colmap is not None else None
+            _pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_child_init, initargs=(level,))
+        pool = _pool
+    if not own:
+        yield
+        return
+    assert pool is not None
+    finished = False
+    try:
+        yield
+        finished = True
+    finally:
+        with _pool_guard:
+            _pool = None
+        if not finished:
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.kill()
+        pool.shutdown(wait=finished, cancel_futures=True)
+
+
+def out_of_process() -> bool:
+    """Whether extractions currently run in child processes (`extraction_processes`)."""
+    return _pool is not None
+
+
 def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDArray[np.uint8] | None = None) -> Frames:
     """COLMAP's covariant SIFT of `img` (8-bit gray), in OpenCV's pixel convention (see the module
     doc): keypoints, sizes, angles and descriptors, which `matching.features.detect` wraps as
     `Features` (this module does not import it: `features` imports this one). `mask` (uint8,
-    nonzero = valid) keeps the keypoints whose nearest pixel is valid (COLMAP has no detection mask)."""
-    import pycolmap
-
+    nonzero = valid) keeps the keypoints whose nearest pixel is valid (COLMAP has no detection mask).
+    Thread-safe: in a child process inside `extraction_processes`, else one at a time here (a
+    child that dies takes the call back into this process)."""
     gray = np.ascontiguousarray(img, dtype=np.uint8)
     if gray.ndim != 2:
         raise ValueError(f"colmap-sift: expected a gray image (H, W), got shape {gray.shape}")
+    pool = _pool
+    if pool is not None:
+        try:
+            return pool.submit(_extract, gray, max_features, mask).result()
+        except BrokenProcessPool:
+            pass
+    with _in_process:
+        return _extract(gray, max_features, mask)
+
+
+def _extract(gray: NDArray[np.uint8], max_features: int, mask: NDArray[np.uint8] | None) -> Frames:
+    """`detect_colmap_sift`'s work, in whichever process runs it."""
+    import pycolmap
+
     extractor = pycolmap.FeatureExtractor.create(extraction_options(max_features), pycolmap.Device.cpu)
     kps, descs = extractor.extract_from_uint8_array(gray)
     frames = np.asarray(pycolmap.keypoints_to_matrix(kps), np.float32).reshape(-1, 4)  # x, y, scale, orientation

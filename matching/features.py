@@ -113,8 +113,9 @@ def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] 
     if cfg.name == "colmap-sift":
         from .colmap_sift import detect_colmap_sift
 
-        with _sift_gate:  # one at a time, as OpenCV's SIFT (and pycolmap holds the GIL meanwhile)
-            kpts, sizes, angles, desc = detect_colmap_sift(img, cfg.max_features, mask)
+        # no SIFT gate: detect_colmap_sift runs one at a time in this process (pycolmap holds the
+        # GIL), or side by side in child processes (`colmap_sift.extraction_processes`)
+        kpts, sizes, angles, desc = detect_colmap_sift(img, cfg.max_features, mask)
         return Features(kpts, sizes, angles, desc) if len(kpts) else Features.empty(128, np.float32)
     det = make_detector(cfg)
     if cfg.name == "sift":

@@ -153,3 +153,15 @@ def test_peak_rss_sees_native_allocations():
         del a
     assert mem.peak_mb is not None and mem.peak_mb > 200
     assert mem.total_mb >= mem.before_mb + mem.peak_mb - 1
+
+
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="RSS sampling needs /proc")
+def test_peak_rss_counts_child_processes():
+    """A child's memory (the covariant-SIFT extractors run in children) is part of the peak."""
+    import subprocess
+    import sys
+
+    code = "import numpy as np, time; a = np.ones(300 * 2**20 // 8); time.sleep(1.5)"
+    with PeakRss() as mem:
+        subprocess.run([sys.executable, "-c", code], check=True)
+    assert mem.peak_mb is not None and mem.peak_mb > 250

@@ -174,3 +174,46 @@ def test_recon_run_matches_the_originals_with_colmap_sift_by_default():
     assert make_matcher(run.match).cfg.fine.originals_detector.name == "colmap-sift"
     off = build_run_config(settings=["matcher.fine.original_detector=sift"])
     assert make_matcher(off.match).cfg.fine.originals_detector.name == "sift"
+
+
+def test_extraction_in_child_processes_is_identical_and_runs_there():
+    """Inside `extraction_processes` the covariant extraction runs in spawned children (it holds
+    the GIL in this process) and gives bit-identical keypoints and descriptors; outside it, in
+    this process again; a dead child's call is taken back into this process."""
+    import os
+
+    from matching import colmap_sift
+
+    img, _ = _blobs(60, seed=4)
+    here = colmap_sift.detect_colmap_sift(img)
+    pids: set[int] = set()
+    with colmap_sift.extraction_processes(2):
+        assert colmap_sift.out_of_process()
+        pool = colmap_sift._pool
+        assert pool is not None
+        there = colmap_sift.detect_colmap_sift(img)
+        pids = {p for p in (pool._processes or {})}
+        assert pids and os.getpid() not in pids
+        for proc in list((pool._processes or {}).values()):
+            proc.kill()
+            proc.join()
+        after_death = colmap_sift.detect_colmap_sift(img)
+    assert not colmap_sift.out_of_process()
+    for a, b, c in zip(here, there, after_death, strict=True):
+        assert a.shape == b.shape == c.shape and len(a) > 20
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+
+
+def test_extraction_processes_is_a_no_op_when_nested_or_zero():
+    """n <= 0 and a nested block keep the outer state (one pool, owned by the outer block)."""
+    from matching import colmap_sift
+
+    with colmap_sift.extraction_processes(0):
+        assert not colmap_sift.out_of_process()
+    with colmap_sift.extraction_processes(1):
+        outer = colmap_sift._pool
+        with colmap_sift.extraction_processes(2):
+            assert colmap_sift._pool is outer
+        assert colmap_sift._pool is outer
+    assert colmap_sift._pool is None

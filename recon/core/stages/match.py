@@ -23,12 +23,14 @@ Options: `match.method` and `match.matcher` (the matcher's own options, see `mak
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from pathlib import Path
 from typing import Any, cast
 
+from matching.colmap_sift import extraction_processes
 from matching.registry import PairMatcher, get_matcher
 from matching.store import FeatureStore
 from matching.types import PairResult
@@ -220,33 +222,44 @@ class Match:
             run.observer.on_pair(i, a, b, r, True)
         if todo:
             pair_dir.mkdir(parents=True, exist_ok=True)
-            futures = Match._submit(run, matcher, todo)
-            pending = set(futures)
-            try:
-                while pending:
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for f in sorted(done, key=lambda f: futures[f]):
-                        i = futures[f]
-                        a, b = pairs[i]
-                        try:
-                            raw = f.result()
-                        except Exception as e:  # one bad pair must not end the run
-                            run.warn(f"matching {a} / {b} failed: {type(e).__name__}: {e}")
-                            results[i] = PairResult.empty(getattr(matcher, "name", "?"),
-                                                          f"matcher error: {type(e).__name__}: {e}")
-                            advance()
-                            continue
-                        full = result_to_full_res(raw, images[a], images[b])
-                        path = cast(Path, paths[i])
-                        save_pair_result(path, full)
-                        # use exactly what a resumed run would load, so both give identical output
-                        r = results[i] = load_pair_result(path) or full
-                        advance()
-                        log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
-                                  r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
-                        run.observer.on_pair(i, a, b, r, False)
-            except BaseException:  # Ctrl-C, a failing cache write: drop the tasks not started yet
-                for f in pending:
-                    f.cancel()
-                raise
+            with contextlib.ExitStack() as stack:
+                if not getattr(run.executor, "distributed", False):
+                    # pair threads: COLMAP's covariant SIFT in child processes (it holds the GIL)
+                    stack.enter_context(extraction_processes(min(run.cfg.num_workers, len(todo))))
+                Match._collect(run, Match._submit(run, matcher, todo), paths, results, advance, images, matcher)
         return cast(list[PairResult], results[first:]), cached[first:]  # every slot from `first` is filled above
+
+    @staticmethod
+    def _collect(run: Run, futures: dict[Future, int], paths: list[Path | None], results: list[PairResult | None],
+                 advance: Any, images: dict[str, Any], matcher: PairMatcher) -> None:
+        """Wait for the submitted pairs; write each to the pair cache as it finishes and store what
+        a resumed run would load in `results` (pair order); one failing pair is a warning."""
+        pairs = run.data.pairs
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in sorted(done, key=lambda f: futures[f]):
+                    i = futures[f]
+                    a, b = pairs[i]
+                    try:
+                        raw = f.result()
+                    except Exception as e:  # one bad pair must not end the run
+                        run.warn(f"matching {a} / {b} failed: {type(e).__name__}: {e}")
+                        results[i] = PairResult.empty(getattr(matcher, "name", "?"),
+                                                      f"matcher error: {type(e).__name__}: {e}")
+                        advance()
+                        continue
+                    full = result_to_full_res(raw, images[a], images[b])
+                    path = cast(Path, paths[i])
+                    save_pair_result(path, full)
+                    # use exactly what a resumed run would load, so both give identical output
+                    r = results[i] = load_pair_result(path) or full
+                    advance()
+                    log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
+                              r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
+                    run.observer.on_pair(i, a, b, r, False)
+        except BaseException:  # Ctrl-C, a failing cache write: drop the tasks not started yet
+            for f in pending:
+                f.cancel()
+            raise
