@@ -2,7 +2,7 @@
 
     python benchmarks/bench_scenes.py [SCENES_ROOT] [--scenes a,b] [--max-size PX]
         [--json benchmarks/results/scenes.json] [--stock-presets default[,high]]
-        [--out out/bench] [--pairs exhaustive] [--seed 0]
+        [--out out/bench] [--pairs exhaustive] [--seed 0] [--set KEY=VALUE ...]
 
 SCENES_ROOT (default: ../shared/data/scenes next to the repository, or $RECON_SHARED_DATA/scenes)
 holds one folder per scene (photos in `images/` or at the top level, optional ground truth in
@@ -66,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="outputs: OUT/<scene>/{extra_affine,stock-*}")
     ap.add_argument("--pairs", default="exhaustive", help="pair selection for both pipelines (as recon run --pairs)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                    help="an option of our run, as `recon run --set` (repeatable), e.g. matcher.adaptive=true")
     ap.add_argument("--progress", action="store_true", help="recon run's progress bars on stderr")
     a = ap.parse_args(argv)
 
@@ -80,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     wanted = [s.strip() for s in a.scenes.split(",") if s.strip()] or None
     try:
         results = run_scenes(root, a.out, wanted, presets=presets, max_size=a.max_size, pairs=a.pairs,
-                             seed=a.seed, progress=a.progress, json_path=a.json,
+                             seed=a.seed, progress=a.progress, json_path=a.json, settings=a.settings,
                              log=lambda m: err.print(m, markup=False))
     except UserError as e:
         err.print(f"[red]bench_scenes: {e}[/red]", highlight=False)

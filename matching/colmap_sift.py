@@ -53,9 +53,10 @@ DESCRIPTOR_SCALE = 512.0
 """Unit-norm descriptors times this = OpenCV SIFT's L2 scale."""
 
 
-def extraction_options(max_features: int = 0):  # -> pycolmap.FeatureExtractionOptions
-    """COLMAP's CPU SIFT options: affine shape and domain-size pooling on, L1-root descriptors, at
-    most `max_features` (0 = unlimited), no downscaling (callers pass the working-resolution image)."""
+def extraction_options(max_features: int = 0, pooling: bool = True):  # -> pycolmap.FeatureExtractionOptions
+    """COLMAP's CPU SIFT options: affine shape and domain-size pooling (unless not `pooling`) on,
+    L1-root descriptors, at most `max_features` (0 = unlimited), no downscaling (callers pass the
+    working-resolution image)."""
     import cv2  # noqa: F401  (cv2 before pycolmap: see the module doc)
     import pycolmap
 
@@ -65,7 +66,7 @@ def extraction_options(max_features: int = 0):  # -> pycolmap.FeatureExtractionO
     o.max_image_size = UNLIMITED  # never downscale here
     o.sift.max_num_features = int(max_features) if max_features else UNLIMITED
     o.sift.estimate_affine_shape = True
-    o.sift.domain_size_pooling = True
+    o.sift.domain_size_pooling = bool(pooling)
     o.sift.normalization = pycolmap.Normalization.L1_ROOT
     return o
 
@@ -129,7 +130,8 @@ def out_of_process() -> bool:
     return _pool is not None
 
 
-def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDArray[np.uint8] | None = None) -> Frames:
+def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDArray[np.uint8] | None = None,
+                       pooling: bool = True) -> Frames:
     """COLMAP's covariant SIFT of `img` (8-bit gray), in OpenCV's pixel convention (see the module
     doc): keypoints, sizes, angles and descriptors, which `matching.features.detect` wraps as
     `Features` (this module does not import it: `features` imports this one). `mask` (uint8,
@@ -142,18 +144,18 @@ def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDAr
     pool = _pool
     if pool is not None:
         try:
-            return pool.submit(_extract, gray, max_features, mask).result()
+            return pool.submit(_extract, gray, max_features, mask, pooling).result()
         except BrokenProcessPool:
             pass
     with _in_process:
-        return _extract(gray, max_features, mask)
+        return _extract(gray, max_features, mask, pooling)
 
 
-def _extract(gray: NDArray[np.uint8], max_features: int, mask: NDArray[np.uint8] | None) -> Frames:
+def _extract(gray: NDArray[np.uint8], max_features: int, mask: NDArray[np.uint8] | None, pooling: bool = True) -> Frames:
     """`detect_colmap_sift`'s work, in whichever process runs it."""
     import pycolmap
 
-    extractor = pycolmap.FeatureExtractor.create(extraction_options(max_features), pycolmap.Device.cpu)
+    extractor = pycolmap.FeatureExtractor.create(extraction_options(max_features, pooling), pycolmap.Device.cpu)
     kps, descs = extractor.extract_from_uint8_array(gray)
     frames = np.asarray(pycolmap.keypoints_to_matrix(kps), np.float32).reshape(-1, 4)  # x, y, scale, orientation
     # COLMAP stores unit-norm descriptors x 512 as uint8 (no component reaches 255 after L1-root);

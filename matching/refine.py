@@ -29,8 +29,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from .geometry import homography_jacobian
-
 
 @dataclass(frozen=True)
 class RefineConfig:
@@ -54,8 +52,13 @@ class RefineConfig:
 
 
 def local_affines_from_homography(H_1_from_0: NDArray[np.float64], pts0: NDArray) -> NDArray[np.float64]:
-    """(N, 2, 2) local affines of `H_1_from_0` at image-0 points `pts0`."""
-    return np.stack([homography_jacobian(H_1_from_0, p) for p in pts0]) if len(pts0) else np.zeros((0, 2, 2))
+    """(N, 2, 2) local affines of `H_1_from_0` at image-0 points `pts0` (`homography_jacobian`
+    at every point, vectorised)."""
+    H = np.asarray(H_1_from_0, np.float64)
+    p = np.asarray(pts0, np.float64).reshape(-1, 2)
+    q = np.c_[p, np.ones(len(p))] @ H.T  # (N, 3)
+    w = q[:, 2][:, None, None]
+    return (H[None, :2, :2] * w - q[:, :2, None] * H[None, 2, :2][:, None, :]) / (w * w)
 
 
 def local_affines_from_neighbours(pts0: NDArray, pts1: NDArray, k: int) -> NDArray[np.float64]:
@@ -112,10 +115,101 @@ def _subpixel(r: NDArray[np.float32], y: int, x: int) -> tuple[float, float]:
     return vertex(r[y, x - 1], r[y, x], r[y, x + 1]), vertex(r[y - 1, x], r[y, x], r[y + 1, x])
 
 
+def common_frames(A: NDArray[np.float64], cap: float) -> tuple[NDArray, NDArray, NDArray[np.bool_]]:
+    """`common_frame` of every (N, 2, 2) affine at once: (P0 (N, 2, 2), P1 (N, 2, 2), ok (N,));
+    rows where `ok` is False (non-finite or degenerate A) hold identities."""
+    n = len(A)
+    P0 = np.tile(np.eye(2), (n, 1, 1))
+    P1 = P0.copy()
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(A).all(axis=(1, 2)), bool)
+    if not ok.any():
+        return P0, P1, ok
+    U, s, Vt = np.linalg.svd(A[ok])
+    good = np.isfinite(s).all(axis=1) & (s > 1e-6).all(axis=1)
+    a = np.minimum(np.minimum(np.maximum(1.0, s), cap * s), cap)
+    idx = np.flatnonzero(ok)[good]
+    P0[idx] = (a[:, :, None] * Vt)[good]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        P1[idx] = ((a / s)[:, :, None] * np.transpose(U, (0, 2, 1)))[good]
+    ok[np.flatnonzero(ok)[~good]] = False
+    return P0, P1, ok
+
+
+def patches(img: NDArray[np.float32], centres: NDArray, P: NDArray, half: int, chunk: int = 1024) -> NDArray[np.float32]:
+    """(N, 2 half + 1, 2 half + 1) patches of frames F_i = P_i (x - centre_i), bilinear with
+    reflected borders: `_patch` for many centres in a few `cv2.remap` calls (each chunk's
+    patches stacked as one tall map)."""
+    size = 2 * half + 1
+    n = len(centres)
+    out = np.empty((n, size, size), np.float32)
+    if n == 0:
+        return out
+    g = np.stack(np.meshgrid(np.arange(size), np.arange(size)), axis=-1).reshape(-1, 2) - half  # (S*S, 2) x, y
+    Pinv = np.linalg.inv(np.asarray(P, np.float64))
+    c = np.asarray(centres, np.float64)
+    for i in range(0, n, chunk):
+        xy = (c[i:i + chunk, None, :] + g[None] @ np.transpose(Pinv[i:i + chunk], (0, 2, 1))).astype(np.float32)  # (m, S*S, 2)
+        m = len(xy)
+        out[i:i + m] = cv2.remap(img, xy.reshape(m * size, size, 2), None, cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REFLECT).reshape(m, size, size)
+    return out
+
+
 def refine_points0(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArray, pts1: NDArray,
                    A_1_from_0: NDArray[np.float64], cfg: RefineConfig) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """(refined image-0 points, moved mask): each `pts0[i]` moved so that its patch, warped by
-    `A_1_from_0[i]`, best correlates with image 1's patch at `pts1[i]` (which stays fixed)."""
+    `A_1_from_0[i]`, best correlates with image 1's patch at `pts1[i]` (which stays fixed).
+    The frames and patches of all matches at once (`common_frames`, `patches`), then one
+    `cv2.matchTemplate` per match; `refine_points0_loop` is the same step one match at a time
+    with OpenCV's warpAffine (the reference the tests compare with: the same points to within
+    interpolation round-off)."""
+    out = np.asarray(pts0, np.float32).reshape(-1, 2).copy()
+    moved = np.zeros(len(out), bool)
+    if len(out) == 0:
+        return out, moved
+    A = np.asarray(A_1_from_0, np.float64)
+    P0, P1, ok = common_frames(A, cfg.max_upsample)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return out, moved
+    r, m = cfg.radius_px, cfg.search_px
+    templ = patches(img1.astype(np.float32), np.asarray(pts1, np.float64)[idx], P1[idx], r)
+    window = patches(img0.astype(np.float32), np.asarray(pts0, np.float64)[idx], P0[idx], r + m)
+    textured = (templ.std(axis=(1, 2)) >= 1e-3) & (window.std(axis=(1, 2)) >= 1e-3)
+    idx, templ, window = idx[textured], templ[textured], window[textured]
+    k = 2 * m + 1
+    res = np.empty((len(idx), k, k), np.float32)
+    peak = np.empty(len(idx))
+    x = np.empty(len(idx), np.int64)
+    y = np.empty(len(idx), np.int64)
+    for j in range(len(idx)):  # OpenCV's matchTemplate is faster one by one than any batched numpy
+        res[j] = cv2.matchTemplate(window[j], templ[j], cv2.TM_CCOEFF_NORMED)
+        _, peak[j], _, (x[j], y[j]) = cv2.minMaxLoc(res[j])
+    inner = (peak >= cfg.min_ncc) & (x > 0) & (x < 2 * m) & (y > 0) & (y < 2 * m)
+    idx, res, x, y = idx[inner], res[inner], x[inner], y[inner]
+    rows = np.arange(len(idx))
+
+    def vertex(a: NDArray, b: NDArray, c: NDArray) -> NDArray:
+        d = a - 2 * b + c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(np.abs(d) < 1e-12, 0.0, np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+
+    centre = res[rows, y, x]
+    dx = vertex(res[rows, y, x - 1], centre, res[rows, y, x + 1])
+    dy = vertex(res[rows, y - 1, x], centre, res[rows, y + 1, x])
+    d_F = np.stack([x + dx - m, y + dy - m], axis=1)
+    d0 = np.linalg.solve(P0[idx], d_F[:, :, None])[:, :, 0]  # the corrections in image-0 pixels
+    small = np.linalg.norm(np.einsum("nij,nj->ni", A[idx], d0), axis=1) <= cfg.max_shift_px
+    idx, d0 = idx[small], d0[small]
+    out[idx] = (np.asarray(pts0, np.float64).reshape(-1, 2)[idx] + d0).astype(np.float32)
+    moved[idx] = True
+    return out, moved
+
+
+def refine_points0_loop(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArray, pts1: NDArray,
+                        A_1_from_0: NDArray[np.float64], cfg: RefineConfig) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """`refine_points0` one match at a time with OpenCV's warpAffine and matchTemplate (the
+    reference implementation the tests compare the vectorised one with)."""
     f0 = img0.astype(np.float32)
     f1 = img1.astype(np.float32)
     out = np.asarray(pts0, np.float32).copy()

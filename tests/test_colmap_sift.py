@@ -110,9 +110,10 @@ def test_mask_limits_the_keypoints(blobs):
     assert np.all(f.kpts[:, 0] < 200.5)
 
 
-def test_homography_pair_matches_land_on_the_truth(pair_store):
+@pytest.mark.parametrize("detector", ["colmap-sift", "colmap-sift-affine"])
+def test_homography_pair_matches_land_on_the_truth(pair_store, detector):
     store, H = pair_store
-    f0, f1 = (original_features(store, n, FineConfig(original_detector="colmap-sift").originals_detector)
+    f0, f1 = (original_features(store, n, FineConfig(original_detector=detector).originals_detector)
               for n in ("a", "b"))
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(f0.descriptors, f1.descriptors, k=2)
     m = np.array([(a.queryIdx, a.trainIdx) for a, b in knn if a.distance < 0.8 * b.distance])
@@ -217,3 +218,14 @@ def test_extraction_processes_is_a_no_op_when_nested_or_zero():
             assert colmap_sift._pool is outer
         assert colmap_sift._pool is outer
     assert colmap_sift._pool is None
+
+
+def test_affine_variant_keeps_the_keypoints_and_drops_domain_size_pooling(blobs):
+    """"colmap-sift-affine" finds the same (affine-adapted) keypoints as "colmap-sift"; only the
+    descriptors differ, pooled over one support size instead of several."""
+    img, _, pooled = blobs
+    affine = detect(img, DetectorConfig("colmap-sift-affine"))
+    np.testing.assert_array_equal(affine.kpts, pooled.kpts)
+    np.testing.assert_array_equal(affine.sizes, pooled.sizes)
+    assert not np.allclose(affine.descriptors, pooled.descriptors, atol=1.0)
+    np.testing.assert_allclose(np.linalg.norm(affine.descriptors, axis=1), 512.0, rtol=1e-4)

@@ -188,3 +188,20 @@ def test_run_scenes_unknown_scene(facade):
 
     with pytest.raises(UserError, match="no scene"):
         run_scenes(facade.parent, facade.parent / "o", ["missing"])
+
+
+@pytest.mark.slow
+def test_compare_scene_applies_settings_to_ours_only(facade, tmp_path):
+    """`settings` (`recon run --set` strings; bench_scenes' --set) reach our run's config and the
+    comparison's record; a bad one is a UserError before anything runs."""
+    from recon.errors import UserError
+
+    with pytest.raises(UserError):
+        compare_scene(facade, tmp_path / "bad", settings=["matcher.adaptive"])
+    assert not (tmp_path / "bad" / "extra_affine").exists()
+    res = compare_scene(facade, tmp_path / "o", max_size=SIZE[0], settings=["matcher.adaptive=true"])
+    assert res["config"]["settings"] == ["matcher.adaptive=true"]
+    ours = json.loads((tmp_path / "o" / "extra_affine" / "report.json").read_text())
+    assert ours["config"]["match"]["matcher"] == {"adaptive": True}
+    assert {p["path"] for p in ours["pairs"]} <= {"originals", "targeted", "full"}
+    assert not any(p["path_reason"].startswith("adaptive off") for p in ours["pairs"])

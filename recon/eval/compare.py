@@ -141,15 +141,20 @@ def method_result(method: str, report: dict[str, Any] | None, peak: PeakRss, gt,
 
 
 def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: int, progress: bool = False,
-             strict: bool = True, workers: int = 0) -> dict[str, Any]:
-    from recon.core.pipeline import RunConfig, run_scene
+             strict: bool = True, workers: int = 0, settings: Sequence[str] = ()) -> dict[str, Any]:
+    """`recon run` (extra-affine) on the scene with `settings` (`recon run --set KEY=VALUE`
+    strings, e.g. "matcher.adaptive=true") on top of the options, evaluated (`method_result`)."""
+    from recon.config import _flag_paths, build_run_config
+    from recon.core.pipeline import run_scene
 
     report, err = None, None
     with PeakRss() as mem:
         try:
-            rep = run_scene(scene_dir, RunConfig.from_options(out=out, overwrite=True, max_size=max_size, method=OURS,
-                                                              pairs=pairs, seed=seed, progress=progress,
-                                                              workers=workers))
+            flags = {"out": str(out), "overwrite": True, "max_size": max_size, "method": OURS, "pairs": pairs,
+                     "seed": seed, "progress": progress, "workers": workers}
+            paths = _flag_paths()
+            cfg = build_run_config(options={paths[k]: v for k, v in flags.items()}, settings=list(settings))
+            rep = run_scene(scene_dir, cfg)
             report = rep.to_dict()
         except (InputError, UserError) as e:
             if strict:
@@ -276,8 +281,9 @@ def clouds_between(stock_row: dict[str, Any], ours_row: dict[str, Any], threshol
 def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets: Sequence[str] = ("default",),
                   max_size: int = DEFAULT_MAX_SIZE, pairs: str = "exhaustive", seed: int = 0, progress: bool = False,
                   threshold_rel: float = 0.01, strict: bool = True, log: Log = _nolog,
-                  on_warning: Log = _nolog, workers: int = 0) -> dict[str, Any]:
-    """Run stock (each preset) and ours, evaluate, compare clouds, write OUT/compare.json.
+                  on_warning: Log = _nolog, workers: int = 0, settings: Sequence[str] = ()) -> dict[str, Any]:
+    """Run stock (each preset) and ours (with `settings`, `recon run --set` strings), evaluate,
+    compare clouds, write OUT/compare.json.
 
     `strict`: InputError / UserError (unusable scene, bad options) propagate; otherwise they are
     recorded as that run's error (the scene benchmark keeps going)."""
@@ -292,13 +298,17 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
     if bad or not presets:
         raise UserError(f"stock preset {', '.join(bad) or '(none)'}: choose from {', '.join(PRESETS)}")
     RunConfig.from_options(max_size=max_size, pairs=pairs, seed=seed)  # validates the options (UserError)
+    if settings:
+        from recon.config import build_run_config
+
+        build_run_config(settings=list(settings))  # and the settings (UserError)
     out_dir = Path(out).expanduser().resolve() if out is not None else scene_dir / "compare"
     out_dir.mkdir(parents=True, exist_ok=True)
 
     res: dict[str, Any] = {"scene": str(scene_dir), "out": str(out_dir),
                            "config": {"stock_presets": list(presets), "max_size": max_size, "pairs": pairs,
-                                      "seed": seed, "method": OURS, "threshold_rel": threshold_rel,
-                                      "cpu_count": os.cpu_count(),
+                                      "seed": seed, "method": OURS, "settings": list(settings),
+                                      "threshold_rel": threshold_rel, "cpu_count": os.cpu_count(),
                                       "started": time.strftime("%Y-%m-%dT%H:%M:%S")},
                            "gt": None, "warnings": []}
 
@@ -318,7 +328,7 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
         methods[f"stock-{preset}"] = run_stock_preset(scene_dir, d, gt, preset, max_size, pairs, seed, strict, workers)
     d = out_dir / OURS_KEY
     log(f"{scene_dir.name}: recon run ({OURS}) -> {d}")
-    methods[OURS_KEY] = run_ours(scene_dir, d, gt, max_size, pairs, seed, progress, strict, workers)
+    methods[OURS_KEY] = run_ours(scene_dir, d, gt, max_size, pairs, seed, progress, strict, workers, settings)
     for name, row in methods.items():
         if row.get("status") != "ok":
             warn(f"{name}: {row.get('status')}: {row.get('message') or 'no message'}")
@@ -496,7 +506,7 @@ def scenes_table(results: list[dict[str, Any]], max_size: int):
 def run_scenes(root: str | Path, out_root: str | Path, scenes: Sequence[str] | None = None,
                presets: Sequence[str] = ("default",), max_size: int = DEFAULT_MAX_SIZE, pairs: str = "exhaustive",
                seed: int = 0, progress: bool = False, json_path: str | Path | None = None,
-               log: Log = _nolog, workers: int = 0) -> list[dict[str, Any]]:
+               log: Log = _nolog, workers: int = 0, settings: Sequence[str] = ()) -> list[dict[str, Any]]:
     """`compare_scene` for each scene folder under `root` into OUT_ROOT/<scene>; the JSON file
     (when given) is rewritten atomically after every scene. UserError for an unknown scene."""
     root = Path(root).expanduser()
@@ -511,13 +521,13 @@ def run_scenes(root: str | Path, out_root: str | Path, scenes: Sequence[str] | N
         raise UserError(f"{root}: no scene folders with images")
     out_root = Path(out_root).expanduser().resolve()
     meta = {"root": str(root), "max_size": max_size, "stock_presets": list(presets), "pairs": pairs, "seed": seed,
-            "ours": OURS, "out": str(out_root), "cpu_count": os.cpu_count(),
+            "ours": OURS, "settings": list(settings), "out": str(out_root), "cpu_count": os.cpu_count(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     results: list[dict[str, Any]] = []
     for scene in wanted:
         res = compare_scene(root / scene, out_root / scene, presets=presets, max_size=max_size, pairs=pairs,
                             seed=seed, progress=progress, strict=False, log=log, workers=workers,
-                            on_warning=functools.partial(_scene_warning, log, scene))
+                            on_warning=functools.partial(_scene_warning, log, scene), settings=settings)
         results.append(res)
         if json_path is not None:
             rows = [dict(r, scene=scene) for x in results for r in x["methods"].values()]
