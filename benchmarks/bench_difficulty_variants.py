@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import recon  # noqa: F401  (cv2 before pycolmap)
-from matching.memory import PeakRss
+from matching.memory import RUN_INTERVAL_S, PeakRss
 from recon.config import build_run_config
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import load_gt, method_result, run_stock_preset
@@ -44,7 +44,7 @@ def run_variant(scene: Path, out: Path, gt, settings: list[str], seed: int) -> d
                                     "seed": seed},
                            settings=settings)
     report, err = None, None
-    with PeakRss() as mem:
+    with PeakRss(RUN_INTERVAL_S) as mem:
         try:
             report = run_scene(scene, cfg).to_dict()
         except Exception as e:  # noqa: BLE001  (one failing run must not end the sweep)

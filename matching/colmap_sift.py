@@ -39,7 +39,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import CancelledError, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 
@@ -77,6 +77,8 @@ Frames = tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], ND
 
 _pool: ProcessPoolExecutor | None = None
 _pool_guard = threading.Lock()
+_users: set[int] = set()  # threads that have extracted through the open block's children
+_abandoned: set[int] = set()  # ...of a block that ended with an exception: they stop, not fall back
 _in_process = threading.Lock()  # in this process pycolmap holds the GIL: one extraction at a time
 
 
@@ -93,20 +95,41 @@ def _child_init(min_log_level: int | None) -> None:
 
 
 @contextmanager
+def _signal_mask_kept() -> Iterator[None]:
+    """Restore the calling thread's signal mask after the block. Python's multiprocessing starts
+    its resource tracker the first time a spawn-context lock is made or a child is spawned, and
+    then *unblocks* SIGINT and SIGTERM in the calling thread (`resource_tracker.ensure_running`);
+    the `recon` program blocks SIGTERM in every thread (`recon._signals`), and a thread that
+    lets it through hands it to the C failure handler pycolmap installs (a stack dump, exit -15)."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextmanager
 def extraction_processes(n: int) -> Iterator[None]:
     """While the block runs, `detect_colmap_sift` extracts in `n` spawned child processes (see the
     module doc); n <= 0, a block already open, or a daemonic process (a Dask worker, which may not
     have children) keep extracting in this process. The children start on the first extraction;
     they are shut down when the block ends, and killed at once when it ends with an exception
-    (Ctrl-C), so an interrupted run does not wait for their extractions."""
+    (Ctrl-C): the threads that were extracting through them then get `CancelledError` instead of
+    extracting again in this process, so an interrupted run neither waits for nor repeats them."""
     global _pool
     with _pool_guard:
         own = n > 0 and _pool is None and not multiprocessing.current_process().daemon
         if own:
+            _users.clear()
+            _abandoned.clear()
             parent_colmap = sys.modules.get("pycolmap")
             level = int(parent_colmap.logging.minloglevel) if parent_colmap is not None else None
-            _pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=_child_init, initargs=(level,))
+            with _signal_mask_kept():
+                _pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_child_init, initargs=(level,))
         pool = _pool
     if not own:
         yield
@@ -119,6 +142,8 @@ def extraction_processes(n: int) -> Iterator[None]:
     finally:
         with _pool_guard:
             _pool = None
+            if not finished:
+                _abandoned.update(_users)
         if not finished:
             for proc in list((getattr(pool, "_processes", None) or {}).values()):
                 proc.kill()
@@ -141,12 +166,20 @@ def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDAr
     gray = np.ascontiguousarray(img, dtype=np.uint8)
     if gray.ndim != 2:
         raise ValueError(f"colmap-sift: expected a gray image (H, W), got shape {gray.shape}")
-    pool = _pool
+    me = threading.get_ident()
+    with _pool_guard:
+        pool = _pool
+        if pool is not None:
+            _users.add(me)
     if pool is not None:
         try:
-            return pool.submit(_extract, gray, max_features, mask, pooling).result()
-        except BrokenProcessPool:
+            with _signal_mask_kept():  # the first submit spawns the children
+                future = pool.submit(_extract, gray, max_features, mask, pooling)
+            return future.result()
+        except (BrokenProcessPool, RuntimeError, CancelledError):  # a dead child, or the block closing
             pass
+    if me in _abandoned:
+        raise CancelledError("covariant SIFT extraction abandoned: the run was interrupted")
     with _in_process:
         return _extract(gray, max_features, mask, pooling)
 

@@ -22,17 +22,19 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
     if len(desc_q) < 1 or len(desc_t) < 2:
         return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
     if norm != cv2.NORM_HAMMING and min(len(desc_q), len(desc_t)) >= flann_min_size:
+        # the k-d forest FlannBasedMatcher builds, searched for arrays (no DMatch objects: the same
+        # neighbours, tests/test_features.py); FLANN returns squared L2 distances
         cv2.setRNGSeed(seed)
-        matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
-        knn = matcher.knnMatch(np.asarray(desc_q, np.float32), np.asarray(desc_t, np.float32), k=2)
+        index = cv2.flann.Index(np.ascontiguousarray(desc_t, np.float32), {"algorithm": 1, "trees": 4})
+        idx, d2 = index.knnSearch(np.ascontiguousarray(desc_q, np.float32), 2, params={"checks": 64})
+        d = np.sqrt(np.maximum(d2, 0)).astype(np.float32)
     else:  # exact: the two nearest neighbours as arrays, no per-match Python objects
         dtype = cv2.CV_32S if norm == cv2.NORM_HAMMING else cv2.CV_32F
         d, idx = cv2.batchDistance(desc_q, desc_t, dtype, normType=norm, K=2)
         d = d.astype(np.float32)
-        ok = (idx[:, 1] >= 0) & (d[:, 0] < ratio * d[:, 1])
-        q = np.flatnonzero(ok)
-        return np.stack([q, idx[q, 0]], axis=1).astype(np.int32), d[q, 0]
-    return ratio_filter(knn, ratio)
+    ok = (idx[:, 1] >= 0) & (d[:, 0] < ratio * d[:, 1])
+    q = np.flatnonzero(ok)
+    return np.stack([q, idx[q, 0]], axis=1).astype(np.int32), d[q, 0]
 
 
 def ratio_filter(knn, ratio: float) -> tuple[NDArray[np.int32], NDArray[np.float32]]:

@@ -69,6 +69,12 @@ def _release_free_memory() -> None:
         pass
 
 
+RUN_INTERVAL_S = 0.05
+"""`PeakRss` sampling interval for whole runs (seconds to minutes): their peaks last far longer,
+and at the 5 ms default the sampler thread took about 6 % of a `recon run` profile's samples
+(a Python thread waking 200 times a second competes with the pair threads for the GIL)."""
+
+
 class PeakRss:
     """Peak resident-set growth during a `with` block, sampled with psutil.
 

@@ -229,3 +229,41 @@ def test_affine_variant_keeps_the_keypoints_and_drops_domain_size_pooling(blobs)
     np.testing.assert_array_equal(affine.sizes, pooled.sizes)
     assert not np.allclose(affine.descriptors, pooled.descriptors, atol=1.0)
     np.testing.assert_allclose(np.linalg.norm(affine.descriptors, axis=1), 512.0, rtol=1e-4)
+
+
+def test_an_interrupted_block_abandons_its_extractions():
+    """When the block ends with an exception (Ctrl-C), its children are killed and a thread that
+    was waiting for them gets CancelledError: it does not redo the extraction in this process."""
+    import threading
+    import time
+    from concurrent.futures import CancelledError
+
+    from matching import colmap_sift
+
+    tex = procedural_texture(4.0, 3.0, 300.0, seed=9)
+    big = cv2.resize(cv2.cvtColor(tex, cv2.COLOR_BGR2GRAY) if tex.ndim == 3 else tex, (1600, 1200))
+    outcome: list[object] = []
+
+    def extract() -> None:
+        try:
+            outcome.append(colmap_sift.detect_colmap_sift(big))
+        except BaseException as e:  # noqa: BLE001  (recorded for the assertion)
+            outcome.append(e)
+
+    worker = threading.Thread(target=extract)
+    with pytest.raises(KeyboardInterrupt), colmap_sift.extraction_processes(1):
+        worker.start()
+        deadline = time.monotonic() + 60
+        pool = colmap_sift._pool
+        assert pool is not None
+        while not any(p.is_alive() for p in (pool._processes or {}).values()) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(2.0)  # the child imports pycolmap and starts the (~10 s) extraction
+        assert colmap_sift._users and worker.is_alive()
+        raise KeyboardInterrupt
+    worker.join(60)
+    assert len(outcome) == 1 and isinstance(outcome[0], CancelledError), outcome
+    assert colmap_sift._pool is None
+    # a later block (or a library call outside any block) extracts normally again
+    small, _ = _blobs(20, seed=1)
+    assert len(colmap_sift.detect_colmap_sift(small)[0]) > 5

@@ -71,3 +71,27 @@ def test_pooled_features_concatenate_views_with_their_index(graf1):
     assert len(pooled) == len(idx) == sum(len(p) for p in parts)
     np.testing.assert_array_equal(pooled.kpts[idx == 1], parts[1].kpts)
     assert set(np.unique(idx)) == {0, 1}
+
+
+def test_flann_ratio_match_equals_opencv_flann_matcher():
+    """Above FLANN_MIN_SIZE, `ratio_match` searches the same seeded k-d forest as OpenCV's
+    FlannBasedMatcher, for arrays: the same matches and distances (not squared) as its
+    knnMatch + ratio test."""
+    import cv2 as cv
+
+    from matching.matching_utils import FLANN_MIN_SIZE, ratio_filter, ratio_match
+    from scenes.texture import procedural_texture
+
+    tex = procedural_texture(4.0, 3.0, 220.0, seed=7)
+    gray = cv.cvtColor(tex, cv.COLOR_BGR2GRAY) if tex.ndim == 3 else tex
+    sift = cv.SIFT.create()
+    _, d0 = sift.detectAndCompute(gray, None)
+    _, d1 = sift.detectAndCompute(cv.resize(gray, None, fx=0.8, fy=0.8, interpolation=cv.INTER_AREA), None)
+    assert min(len(d0), len(d1)) >= FLANN_MIN_SIZE
+    m, d = ratio_match(d0, d1, cv.NORM_L2, 0.75, seed=3)
+    cv.setRNGSeed(3)
+    knn = cv.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64}).knnMatch(d0, d1, k=2)
+    m_ref, d_ref = ratio_filter(knn, 0.75)
+    assert len(m) > 200
+    np.testing.assert_array_equal(m, m_ref)
+    np.testing.assert_allclose(d, d_ref, rtol=1e-6)

@@ -26,7 +26,7 @@ import time
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from matching.memory import PeakRss, peak_rss_mb
+from matching.memory import RUN_INTERVAL_S, PeakRss, peak_rss_mb
 from recon.core.context import Run
 from recon.core.report import RunReport, write_report
 from recon.log import quiet_colmap
@@ -51,7 +51,7 @@ def run_stages(run: Run, stages: Sequence[Stage]) -> RunReport:
     t_start = time.perf_counter()
     report = run.report
     failed = True
-    with PeakRss() as mem, run.progress, quiet_colmap():
+    with PeakRss(RUN_INTERVAL_S) as mem, run.progress, quiet_colmap():
         try:
             for stage in stages:
                 _one(run, stage)

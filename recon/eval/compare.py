@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from matching.errors import InputError
-from matching.memory import PeakRss
+from matching.memory import RUN_INTERVAL_S, PeakRss
 from recon.config import DEFAULT_MAX_SIZE
 from recon.core.jsonio import write_json_atomic
 from recon.core.scene import IMAGE_EXTS
@@ -148,7 +148,7 @@ def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: in
     from recon.core.pipeline import run_scene
 
     report, err = None, None
-    with PeakRss() as mem:
+    with PeakRss(RUN_INTERVAL_S) as mem:
         try:
             flags = {"out": str(out), "overwrite": True, "max_size": max_size, "method": OURS, "pairs": pairs,
                      "seed": seed, "progress": progress, "workers": workers}
@@ -171,7 +171,7 @@ def run_stock_preset(scene_dir: Path, out: Path, gt, preset: str, max_size: int,
     from recon.eval.stock import run_stock
 
     report, err = None, None
-    with PeakRss() as mem:
+    with PeakRss(RUN_INTERVAL_S) as mem:
         try:
             report = run_stock(scene_dir, out, preset=preset, pairs=pairs, max_size=max_size,  # type: ignore[arg-type]
                                seed=seed, workers=workers).to_dict()
