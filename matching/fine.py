@@ -63,6 +63,8 @@ class FineConfig:
     extracts; RootSIFT on both sides, a few seconds per 800x600 image). The simulated views keep
     OpenCV's SIFT against the target's OpenCV SIFT (`TargetFeatures`); "colmap-sift-affine" = the
     same without domain-size pooling (affine shape only, 40 % of the time at 1600 px)."""
+    original_dsp_scales: int = 10
+    """Support sizes of "colmap-sift"'s domain-size pooling (`DetectorConfig.dsp_scales`)."""
 
     @property
     def detector(self) -> DetectorConfig:
@@ -74,7 +76,7 @@ class FineConfig:
         """The detector of the originals matched with each other (`original_detector`)."""
         if self.original_detector == "sift":
             return self.detector
-        return DetectorConfig(self.original_detector, self.sift_features, True)
+        return DetectorConfig(self.original_detector, self.sift_features, True, dsp_scales=self.original_dsp_scales)
 
     def detector_for(self, view: ViewParams) -> DetectorConfig:
         """The detector of `view` of the reference (and of the target features it is matched with)."""

@@ -267,3 +267,16 @@ def test_an_interrupted_block_abandons_its_extractions():
     # a later block (or a library call outside any block) extracts normally again
     small, _ = _blobs(20, seed=1)
     assert len(colmap_sift.detect_colmap_sift(small)[0]) > 5
+
+
+def test_fewer_pooling_scales_change_descriptors_not_keypoints(blobs):
+    """`dsp_scales` (FineConfig.original_dsp_scales) reaches COLMAP: same keypoints, other
+    descriptors, and another cache key (features of both settings never mix)."""
+    img, _, pooled = blobs
+    five = DetectorConfig("colmap-sift", dsp_scales=5)
+    f5 = detect(img, five)
+    np.testing.assert_array_equal(f5.kpts, pooled.kpts)
+    assert not np.allclose(f5.descriptors, pooled.descriptors, atol=1.0)
+    assert five.key != COLMAP.key
+    det = FineConfig(original_detector="colmap-sift", original_dsp_scales=5).originals_detector
+    assert det.dsp_scales == 5 and det.key.endswith("d5")
