@@ -151,11 +151,6 @@ def extraction_processes(n: int) -> Iterator[None]:
         pool.shutdown(wait=finished, cancel_futures=True)
 
 
-def out_of_process() -> bool:
-    """Whether extractions currently run in child processes (`extraction_processes`)."""
-    return _pool is not None
-
-
 def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDArray[np.uint8] | None = None,
                        pooling: bool = True, dsp_scales: int = 10) -> Frames:
     """COLMAP's covariant SIFT of `img` (8-bit gray), in OpenCV's pixel convention (see the module
@@ -185,8 +180,8 @@ def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDAr
         return _extract(gray, max_features, mask, pooling, dsp_scales)
 
 
-def _extract(gray: NDArray[np.uint8], max_features: int, mask: NDArray[np.uint8] | None, pooling: bool = True,
-             dsp_scales: int = 10) -> Frames:
+def _extract(gray: NDArray[np.uint8], max_features: int, mask: NDArray[np.uint8] | None, pooling: bool,
+             dsp_scales: int) -> Frames:
     """`detect_colmap_sift`'s work, in whichever process runs it."""
     import pycolmap
 

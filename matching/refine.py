@@ -85,39 +85,17 @@ def local_affines_from_neighbours(pts0: NDArray, pts1: NDArray, k: int) -> NDArr
 
 def common_frame(A: NDArray[np.float64], cap: float) -> tuple[NDArray, NDArray] | None:
     """(P0, P1): 2x2 maps of image 0 and image 1 into the common frame F (P1 @ A == P0), each
-    magnifying by at least 1 in every direction, capped at `cap`; None for a degenerate A."""
-    U, s, Vt = np.linalg.svd(A)
-    if not np.all(s > 1e-6) or not np.isfinite(s).all():
-        return None
-    a = np.maximum(1.0, s)
-    a = np.minimum(a, cap * s)  # image 1's magnification a/s stays <= cap
-    a = np.minimum(a, cap)      # and image 0's stays <= cap
-    P0 = np.diag(a) @ Vt
-    P1 = np.diag(a / s) @ U.T
-    return P0, P1
-
-
-def _patch(img: NDArray[np.float32], centre: NDArray, P: NDArray, half: int) -> NDArray[np.float32]:
-    """The (2 half + 1)^2 patch of frame F around `centre` (pixels of `img`), F = P (x - centre)."""
-    Pinv = np.linalg.inv(P)
-    c = np.array([half, half], np.float64)
-    M = np.hstack([Pinv, (np.asarray(centre, np.float64) - Pinv @ c)[:, None]])
-    size = 2 * half + 1
-    return cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REFLECT)
-
-
-def _subpixel(r: NDArray[np.float32], y: int, x: int) -> tuple[float, float]:
-    """Parabolic sub-pixel offset (dx, dy) of the peak of `r` at (y, x) (interior peak)."""
-    def vertex(a: float, b: float, c: float) -> float:
-        d = a - 2 * b + c
-        return 0.0 if abs(d) < 1e-12 else float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
-    return vertex(r[y, x - 1], r[y, x], r[y, x + 1]), vertex(r[y - 1, x], r[y, x], r[y + 1, x])
+    magnifying by at least 1 in every direction, capped at `cap`; None for a degenerate A
+    (`common_frames` for one affine)."""
+    P0, P1, ok = common_frames(np.asarray(A, np.float64)[None], cap)
+    return (P0[0], P1[0]) if ok[0] else None
 
 
 def common_frames(A: NDArray[np.float64], cap: float) -> tuple[NDArray, NDArray, NDArray[np.bool_]]:
-    """`common_frame` of every (N, 2, 2) affine at once: (P0 (N, 2, 2), P1 (N, 2, 2), ok (N,));
-    rows where `ok` is False (non-finite or degenerate A) hold identities."""
+    """(P0, P1, ok) for every (N, 2, 2) affine A at once: P0 = diag(a) V^T and P1 = diag(a / s) U^T
+    for A = U diag(s) V^T, a = min(max(1, s), cap s, cap) (each side magnified by at least 1,
+    at most `cap`: module doc, step 2); rows where `ok` is False (non-finite or degenerate A)
+    hold identities."""
     n = len(A)
     P0 = np.tile(np.eye(2), (n, 1, 1))
     P1 = P0.copy()
@@ -137,8 +115,7 @@ def common_frames(A: NDArray[np.float64], cap: float) -> tuple[NDArray, NDArray,
 
 def patches(img: NDArray[np.float32], centres: NDArray, P: NDArray, half: int, chunk: int = 1024) -> NDArray[np.float32]:
     """(N, 2 half + 1, 2 half + 1) patches of frames F_i = P_i (x - centre_i), bilinear with
-    reflected borders: `_patch` for many centres in a few `cv2.remap` calls (each chunk's
-    patches stacked as one tall map)."""
+    reflected borders, in a few `cv2.remap` calls (each chunk's patches stacked as one tall map)."""
     size = 2 * half + 1
     n = len(centres)
     out = np.empty((n, size, size), np.float32)
@@ -160,9 +137,9 @@ def refine_points0(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArr
     """(refined image-0 points, moved mask): each `pts0[i]` moved so that its patch, warped by
     `A_1_from_0[i]`, best correlates with image 1's patch at `pts1[i]` (which stays fixed).
     The frames and patches of all matches at once (`common_frames`, `patches`), then one
-    `cv2.matchTemplate` per match; `refine_points0_loop` is the same step one match at a time
-    with OpenCV's warpAffine (the reference the tests compare with: the same points to within
-    interpolation round-off)."""
+    `cv2.matchTemplate` per match (tests/test_refine.py compares it with a per-match reference
+    that warps each patch with `cv2.warpAffine`: the same points to within interpolation
+    round-off)."""
     out = np.asarray(pts0, np.float32).reshape(-1, 2).copy()
     moved = np.zeros(len(out), bool)
     if len(out) == 0:
@@ -203,40 +180,6 @@ def refine_points0(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArr
     idx, d0 = idx[small], d0[small]
     out[idx] = (np.asarray(pts0, np.float64).reshape(-1, 2)[idx] + d0).astype(np.float32)
     moved[idx] = True
-    return out, moved
-
-
-def refine_points0_loop(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArray, pts1: NDArray,
-                        A_1_from_0: NDArray[np.float64], cfg: RefineConfig) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-    """`refine_points0` one match at a time with OpenCV's warpAffine and matchTemplate (the
-    reference implementation the tests compare the vectorised one with)."""
-    f0 = img0.astype(np.float32)
-    f1 = img1.astype(np.float32)
-    out = np.asarray(pts0, np.float32).copy()
-    moved = np.zeros(len(out), bool)
-    r, m = cfg.radius_px, cfg.search_px
-    for i, (p0, p1, A) in enumerate(zip(pts0, pts1, A_1_from_0)):
-        if not np.isfinite(A).all():
-            continue
-        frame = common_frame(A, cfg.max_upsample)
-        if frame is None:
-            continue
-        P0, P1 = frame
-        templ = _patch(f1, p1, P1, r)
-        window = _patch(f0, p0, P0, r + m)
-        if templ.std() < 1e-3 or window.std() < 1e-3:
-            continue
-        res = cv2.matchTemplate(window, templ, cv2.TM_CCOEFF_NORMED)
-        _, peak, _, (x, y) = cv2.minMaxLoc(res)
-        if peak < cfg.min_ncc or not (0 < x < 2 * m and 0 < y < 2 * m):
-            continue
-        dx, dy = _subpixel(res, y, x)
-        d_F = np.array([x + dx - m, y + dy - m])
-        d0 = np.linalg.solve(P0, d_F)  # the correction in image-0 pixels
-        if np.linalg.norm(A @ d0) > cfg.max_shift_px:
-            continue
-        out[i] = p0 + d0
-        moved[i] = True
     return out, moved
 
 

@@ -315,12 +315,14 @@ def preset(name: str) -> RunConfig:
 
 def build_run_config(preset_name: str = "default", config_file: str | Path | None = None,
                      options: dict[str, Any] | None = None, settings: list[str] | None = None) -> RunConfig:
-    """preset < config file < `options` (dotted keys, e.g. flags given on the command line) <
-    `settings` (`KEY=VALUE` strings of `--set`); see the module doc."""
+    """preset < config file < `options` (dotted keys, e.g. flags given on the command line, or
+    `recon run`'s flag names as in `RunConfig.from_options`) < `settings` (`KEY=VALUE` strings of
+    `--set`); see the module doc."""
     data = preset(preset_name).to_dict()
     if config_file is not None:
         data = _merge(data, _normalise(read_config_file(config_file)))
-    data = _merge(data, _normalise(_nest(dict(options or {}))))
+    paths = _flag_paths()
+    data = _merge(data, _normalise(_nest({paths.get(k, k): v for k, v in (options or {}).items()})))
     for text in settings or []:
         key, sep, value = text.partition("=")
         if not sep or not key.strip():

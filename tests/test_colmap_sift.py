@@ -189,7 +189,7 @@ def test_extraction_in_child_processes_is_identical_and_runs_there():
     here = colmap_sift.detect_colmap_sift(img)
     pids: set[int] = set()
     with colmap_sift.extraction_processes(2):
-        assert colmap_sift.out_of_process()
+        assert colmap_sift._pool is not None
         pool = colmap_sift._pool
         assert pool is not None
         there = colmap_sift.detect_colmap_sift(img)
@@ -199,7 +199,7 @@ def test_extraction_in_child_processes_is_identical_and_runs_there():
             proc.kill()
             proc.join()
         after_death = colmap_sift.detect_colmap_sift(img)
-    assert not colmap_sift.out_of_process()
+    assert colmap_sift._pool is None
     for a, b, c in zip(here, there, after_death, strict=True):
         assert a.shape == b.shape == c.shape and len(a) > 20
         np.testing.assert_array_equal(a, b)
@@ -211,7 +211,7 @@ def test_extraction_processes_is_a_no_op_when_nested_or_zero():
     from matching import colmap_sift
 
     with colmap_sift.extraction_processes(0):
-        assert not colmap_sift.out_of_process()
+        assert colmap_sift._pool is None
     with colmap_sift.extraction_processes(1):
         outer = colmap_sift._pool
         with colmap_sift.extraction_processes(2):

@@ -18,7 +18,6 @@ from matching.refine import (
     local_affines_from_neighbours,
     refine_matches,
     refine_points0,
-    refine_points0_loop,
 )
 from matching.store import FeatureStore
 from scenes.texture import procedural_texture
@@ -36,6 +35,65 @@ def _pair(tilt: float = 2.5, angle: float = 30.0):
     H[:2, 2] = c - L @ c
     H[2, :2] = [2e-4, -1e-4]
     return img0, cv2.warpPerspective(img0, H, (640, 480), flags=cv2.INTER_LINEAR), H
+
+
+# the per-match reference of `refine_points0` (the implementation before it was vectorised) ------------
+def _frame_reference(A: np.ndarray, cap: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """`common_frame` for one affine, by its own SVD."""
+    U, s, Vt = np.linalg.svd(A)
+    if not np.all(s > 1e-6) or not np.isfinite(s).all():
+        return None
+    a = np.minimum(np.minimum(np.maximum(1.0, s), cap * s), cap)
+    return np.diag(a) @ Vt, np.diag(a / s) @ U.T
+
+
+def _patch(img: np.ndarray, centre: np.ndarray, P: np.ndarray, half: int) -> np.ndarray:
+    """The (2 half + 1)^2 patch of frame F around `centre` (pixels of `img`), F = P (x - centre)."""
+    Pinv = np.linalg.inv(P)
+    c = np.array([half, half], np.float64)
+    M = np.hstack([Pinv, (np.asarray(centre, np.float64) - Pinv @ c)[:, None]])
+    size = 2 * half + 1
+    return cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def _subpixel(r: np.ndarray, y: int, x: int) -> tuple[float, float]:
+    """Parabolic sub-pixel offset (dx, dy) of the peak of `r` at (y, x) (interior peak)."""
+    def vertex(a: float, b: float, c: float) -> float:
+        d = a - 2 * b + c
+        return 0.0 if abs(d) < 1e-12 else float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+    return vertex(r[y, x - 1], r[y, x], r[y, x + 1]), vertex(r[y - 1, x], r[y, x], r[y + 1, x])
+
+
+def refine_points0_loop(img0, img1, pts0, pts1, A_1_from_0, cfg: RefineConfig):
+    """`refine_points0` one match at a time with OpenCV's warpAffine and matchTemplate."""
+    f0 = img0.astype(np.float32)
+    f1 = img1.astype(np.float32)
+    out = np.asarray(pts0, np.float32).copy()
+    moved = np.zeros(len(out), bool)
+    r, m = cfg.radius_px, cfg.search_px
+    for i, (p0, p1, A) in enumerate(zip(pts0, pts1, A_1_from_0, strict=True)):
+        if not np.isfinite(A).all():
+            continue
+        frame = _frame_reference(A, cfg.max_upsample)
+        if frame is None:
+            continue
+        P0, P1 = frame
+        templ = _patch(f1, p1, P1, r)
+        window = _patch(f0, p0, P0, r + m)
+        if templ.std() < 1e-3 or window.std() < 1e-3:
+            continue
+        res = cv2.matchTemplate(window, templ, cv2.TM_CCOEFF_NORMED)
+        _, peak, _, (x, y) = cv2.minMaxLoc(res)
+        if peak < cfg.min_ncc or not (0 < x < 2 * m and 0 < y < 2 * m):
+            continue
+        dx, dy = _subpixel(res, y, x)
+        d0 = np.linalg.solve(P0, np.array([x + dx - m, y + dy - m]))  # the correction in image-0 pixels
+        if np.linalg.norm(A @ d0) > cfg.max_shift_px:
+            continue
+        out[i] = p0 + d0
+        moved[i] = True
+    return out, moved
 
 
 def test_common_frame_never_downsamples():
@@ -64,7 +122,7 @@ def test_perturbed_matches_move_back_onto_the_homography():
 
 def test_vectorised_refinement_equals_the_per_match_reference():
     """`refine_points0` (all frames and patches at once) moves the same matches as
-    `refine_points0_loop` (OpenCV's warpAffine per match) to the same positions, up to the two
+    `refine_points0_loop` (above: OpenCV's warpAffine per match) to the same positions, up to the two
     warps' interpolation round-off; degenerate and non-finite affines are left alone by both."""
     img0, img1, H = _pair()
     rng = np.random.default_rng(2)
@@ -85,7 +143,7 @@ def test_vectorised_refinement_equals_the_per_match_reference():
     P0, P1, ok = common_frames(A, 4.0)
     assert not ok[:2].any() and ok[2:].all()
     for i in (2, 3, 50):
-        P0_i, P1_i = common_frame(A[i], 4.0)
+        P0_i, P1_i = _frame_reference(A[i], 4.0)
         np.testing.assert_allclose(P0[i], P0_i, atol=1e-12)
         np.testing.assert_allclose(P1[i], P1_i, atol=1e-12)
 

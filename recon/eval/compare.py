@@ -144,16 +144,15 @@ def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: in
              strict: bool = True, workers: int = 0, settings: Sequence[str] = ()) -> dict[str, Any]:
     """`recon run` (extra-affine) on the scene with `settings` (`recon run --set KEY=VALUE`
     strings, e.g. "matcher.adaptive=true") on top of the options, evaluated (`method_result`)."""
-    from recon.config import _flag_paths, build_run_config
+    from recon.config import build_run_config
     from recon.core.pipeline import run_scene
 
     report, err = None, None
     with PeakRss(RUN_INTERVAL_S) as mem:
         try:
-            flags = {"out": str(out), "overwrite": True, "max_size": max_size, "method": OURS, "pairs": pairs,
-                     "seed": seed, "progress": progress, "workers": workers}
-            paths = _flag_paths()
-            cfg = build_run_config(options={paths[k]: v for k, v in flags.items()}, settings=list(settings))
+            cfg = build_run_config(options={"out": str(out), "overwrite": True, "max_size": max_size, "method": OURS,
+                                            "pairs": pairs, "seed": seed, "progress": progress, "workers": workers},
+                                   settings=list(settings))
             rep = run_scene(scene_dir, cfg)
             report = rep.to_dict()
         except (InputError, UserError) as e:
