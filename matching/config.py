@@ -22,6 +22,7 @@ from .adaptive import AdaptiveConfig
 from .coarse import CoarseConfig
 from .escalation import EscalationConfig, SteepConfig
 from .fine import FineConfig
+from .mser import MserConfig
 from .reference import ReferenceConfig
 from .refine import RefineConfig
 from .views import GridConfig
@@ -113,7 +114,8 @@ class MatcherConfig:
         """For `recon run`: no final homography (COLMAP verifies with F / E; the escalation trigger
         counts fundamental-matrix inliers), the originals always fine-matched too (keypoints shared
         by all pairs of an image form long tracks), the epipolar-guided round, and only the cheap
-        escalation levels (`topk`, `swap`), only for pairs whose coarse search found some overlap
+        escalation levels (`topk`, `swap`; `mser`'s frame check needs a homography), only for pairs
+        whose coarse search found some overlap
         (>= 15 ORB inliers in a view): in exhaustive matching most weak pairs simply do not overlap,
         and the two-sided levels cost seconds each on them (docs/decisions.md).
 
@@ -143,7 +145,8 @@ class MatcherConfig:
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
                              fine=FineConfig(original_detector="colmap-sift"),
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,
-                                                         steep=SteepConfig(enabled=False)),
+                                                         steep=SteepConfig(enabled=False),
+                                                         mser=MserConfig(enabled=False)),
                              adaptive=False, refine=RefineConfig(enabled=False),
                              coarse=CoarseConfig(search="grid", settle_targeted=False))
 

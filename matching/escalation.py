@@ -10,7 +10,9 @@ only while the best attempt has fewer than `min_inliers` verified matches (a hom
 2. `swap`: simulate the other image instead (the reference choice was wrong);
 3. `pairs`: two-sided, view pair by view pair (`matching.viewpairs`);
 4. `steep`: one image tilted past the grid, t = 8 .. 22.6 (`matching.steep`): grazing targets;
-5. `two-sided`: both images simulated and pooled (`matching.twosided`).
+5. `mser`: affine-normalised MSER regions of both images in views up to t = 4, pooled with the
+   best attempt and verified with the local-affine-frame check (`matching.mserlevel`);
+6. `two-sided`: both images simulated and pooled (`matching.twosided`).
 
 The levels are strategies of `matching.strategies`; this module holds only their options and the
 gate. What each level solves on the EVD pairs, and at what cost, is in docs/decisions.md.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from .mser import MserConfig
 from .views import GridConfig, Interp
 
 
@@ -85,6 +88,8 @@ class EscalationConfig:
     """Views the `topk` level fuses (skipped when not above the fast path's `fine_top_k`)."""
     swap: bool = True
     """Run the `swap` level (simulate the other image)."""
+    mser: MserConfig = field(default_factory=MserConfig)
+    """The `mser` level (`matching.mserlevel`): MSER regions of both images, the LAF check."""
     pairs: bool = True
     """Run the `pairs` level (`matching.viewpairs`: every view of one image against every view of
     the other, the main grid on both sides)."""

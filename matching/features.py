@@ -51,25 +51,29 @@ class DetectorConfig:
 
 @dataclass
 class Features:
-    """Keypoints (N, 2) float32 px, their size (px) and angle (deg), descriptors (N, D) and
-    detector responses (N,) (None when unknown)."""
+    """Keypoints (N, 2) float32 px, their size (px) and angle (deg), descriptors (N, D),
+    detector responses (N,) and local affine frames (N, 2, 2; `matching.mser`), each None when
+    unknown."""
 
     kpts: NDArray[np.float32]
     sizes: NDArray[np.float32]
     angles: NDArray[np.float32]
     descriptors: NDArray  # uint8 (ORB, 32 bytes) or float32 (SIFT, 128)
     responses: NDArray[np.float32] | None = None
+    frames: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return int(len(self.kpts))
 
     def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> Features:
         resp = None if self.responses is None else self.responses[keep]
-        return Features(self.kpts[keep], self.sizes[keep], self.angles[keep], self.descriptors[keep], resp)
+        frames = None if self.frames is None else self.frames[keep]
+        return Features(self.kpts[keep], self.sizes[keep], self.angles[keep], self.descriptors[keep], resp, frames)
 
     @property
     def nbytes(self) -> int:
-        return int(self.kpts.nbytes + self.sizes.nbytes + self.angles.nbytes + self.descriptors.nbytes)
+        extra = 0 if self.frames is None else self.frames.nbytes
+        return int(self.kpts.nbytes + self.sizes.nbytes + self.angles.nbytes + self.descriptors.nbytes + extra)
 
     @staticmethod
     def empty(dim: int = 128, dtype=np.float32) -> Features:

@@ -117,7 +117,8 @@ class FeatureStore:
                 if str(z["key"]) != key:
                     return None
                 resp = z["responses"] if "responses" in z.files else None
-                return Features(z["kpts"], z["sizes"], z["angles"], z["descriptors"], resp)
+                frames = z["frames"] if "frames" in z.files else None
+                return Features(z["kpts"], z["sizes"], z["angles"], z["descriptors"], resp, frames)
         except Exception:  # a damaged cache file is recomputed, never trusted
             return None
 
@@ -127,6 +128,8 @@ class FeatureStore:
             return
         tmp = p.with_name(f"{p.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
         extra: dict[str, Any] = {} if f.responses is None else {"responses": f.responses}
+        if f.frames is not None:
+            extra["frames"] = f.frames
         try:
             p.parent.mkdir(parents=True, exist_ok=True)
             np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles,

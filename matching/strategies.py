@@ -2,7 +2,8 @@
 
 Attempts are ways of matching the pair, each returning an `Attempt` with its verified-match
 count: the paper's `fast_path` first, then the `ESCALATION` levels, cheapest first (see
-`matching.escalation`): `topk`, `swap`, `pairs` (`matching.viewpairs`), `two-sided`
+`matching.escalation`): `topk`, `swap`, `pairs` (`matching.viewpairs`), `steep` (`matching.steep`),
+`mser` (`matching.mserlevel`), `two-sided`
 (`matching.twosided`). A level runs only while the best attempt so far is not verified well
 enough, and the attempt with the most verified matches wins.
 
@@ -25,6 +26,7 @@ from .context import Attempt, MatchContext
 from .fine import fine_match, select_fine_views
 from .guided import guided_epipolar_round, guided_homography_round
 from .matching_utils import ransac_homography
+from .mserlevel import mser_attempt
 from .reference import reference_from_final_homography
 from .refine import refine_matches
 from .steep import steep_attempt
@@ -106,6 +108,18 @@ class Swap:
         return fine_attempt(ctx, 1 - best.reference, max(ctx.cfg.escalation.top_k, 1), self.label)
 
 
+class Mser:
+    """Affine-normalised MSER regions pooled with the best attempt (`matching.mserlevel`)."""
+
+    label = "mser"
+
+    def applies(self, ctx: MatchContext, best: Attempt) -> bool:
+        return ctx.cfg.escalation.mser.enabled
+
+    def run(self, ctx: MatchContext, best: Attempt) -> Attempt:
+        return mser_attempt(ctx, best, ctx.cfg.escalation.mser)
+
+
 class ViewPairs:
     """Two-sided, view pair by view pair (`matching.viewpairs`)."""
 
@@ -142,7 +156,7 @@ class TwoSided:
         return two_sided_attempt(ctx, best)
 
 
-ESCALATION: tuple[Level, ...] = (TopK(), Swap(), ViewPairs(), Steep(), TwoSided())
+ESCALATION: tuple[Level, ...] = (TopK(), Swap(), ViewPairs(), Steep(), Mser(), TwoSided())
 """The escalation levels, cheapest first; `fast_path` precedes them."""
 
 

@@ -187,7 +187,7 @@ def test_finishing_steps_are_in_order():
     names = [type(s).__name__ for s in FINISHING]
     assert names == ["FinalHomography", "GuidedHomography", "GuidedEpipolar", "RefinePoints",
                      "ReferenceFromFinalHomography"]
-    assert [lvl.label for lvl in ESCALATION] == ["topk", "swap", "pairs", "steep", "two-sided"]
+    assert [lvl.label for lvl in ESCALATION] == ["topk", "swap", "pairs", "steep", "mser", "two-sided"]
 
 
 def test_reference_from_final_homography_reads_image_0s_size_from_the_store():
