@@ -84,6 +84,7 @@ def test_cli_bench_pairs_writes_json(tmp_path, capsys):
         assert r["ref_correct"] is None  # baselines choose no reference
         assert r["gt_reference"] == 0
         assert r["seconds"] > 0 and 0 <= r["precision"] <= 1
+        assert r["correct"] <= r["correct_5px"] <= r["points"]
     sift = rows[0]
     assert sift["points"] >= 100 and sift["precision"] >= 0.7  # the scaled H is right
     assert not [p for p in out.parent.iterdir() if p.name != "out.json"]  # no temp file left
