@@ -104,10 +104,13 @@ def mser_regions(gray: NDArray[np.uint8], cfg: MserConfig) -> tuple[NDArray[np.f
 def dominant_orientation(tiles: NDArray[np.float32], disc_px: float) -> NDArray[np.float64]:
     """Each tile's dominant gradient direction (radians, image axes: x right, y down): the peak of
     a 36-bin histogram of gradient angles, magnitude- and Gaussian-weighted inside the disc and
-    smoothed twice, with a parabolic fit around the peak (SIFT's orientation assignment)."""
+    smoothed twice, with a parabolic fit around the peak (SIFT's orientation assignment). Only
+    the disc's bounding box (plus a pixel for the central differences) is differentiated."""
     n, p, _ = tiles.shape
-    gy, gx = np.gradient(tiles, axis=(1, 2))
-    yy, xx = np.mgrid[:p, :p] - (p - 1) / 2.0
+    c = (p - 1) / 2.0
+    lo, hi = max(0, int(np.floor(c - disc_px)) - 1), min(p, int(np.ceil(c + disc_px)) + 2)
+    gy, gx = np.gradient(tiles[:, lo:hi, lo:hi], axis=(1, 2))
+    yy, xx = np.mgrid[lo:hi, lo:hi] - c
     r2 = xx**2 + yy**2
     wgt = (np.exp(-r2 / (2 * (0.75 * disc_px) ** 2)) * (r2 <= disc_px**2)).astype(np.float32)
     inside = wgt.ravel() > 0
@@ -157,8 +160,10 @@ def normalised_tiles(gray: NDArray[np.uint8], mu: NDArray[np.float64], shape: ND
 
 def describe_tiles(tiles: NDArray[np.float32], theta: NDArray[np.float64], disc_px: float) -> NDArray[np.float32]:
     """RootSIFT (at OpenCV's L2 scale, ~512) of each tile's centre, rotated to `theta`: the tiles
-    go side by side into one mosaic and OpenCV's SIFT describes all centres in one call; its 4x4
-    histogram cells span the disc (keypoint size = 2/3 of the radius: cell width 3 sigma = r / 2)."""
+    go side by side into one mosaic and OpenCV's SIFT describes all centres in one call (keypoints
+    given at octave 0: one pyramid octave, no upsampling). Keypoint size = 2/3 of the disc radius
+    r, so a histogram cell is 3 sigma = r wide and the 4x4 cells span +-2r: the measurement region
+    and as much of its surroundings, which the tile (+-32 px at r = 12) holds under any rotation."""
     n, p, _ = tiles.shape
     cols = 64
     rows = (n + cols - 1) // cols
