@@ -69,9 +69,17 @@ def main() -> None:
     ap.add_argument("data_root", type=Path)
     ap.add_argument("--only", default="evd", help="pairs whose name contains this text (default: evd)")
     ap.add_argument("--grid-n", type=int, default=None, help="tilt steps of the level's views (0 = originals only)")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a numeric MserConfig field, e.g. --set disc_px=9 (repeatable)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     cfg = MserConfig()
+    for kv in args.set:
+        name, _, value = kv.partition("=")
+        current = getattr(cfg, name, None)
+        if not isinstance(current, (int, float)) or isinstance(current, bool):
+            raise SystemExit(f"error: --set {kv}: not a numeric MserConfig field")
+        cfg = replace(cfg, **{name: type(current)(value)})
     if args.grid_n is not None:
         cfg = replace(cfg, grid=replace(cfg.grid, n=args.grid_n))
     pairs = [p for p in discover_pairs(args.data_root) if args.only.lower() in p.name.lower()]
@@ -88,7 +96,7 @@ def main() -> None:
               f"{str(r.get('laf_pass_wrong')):>10}{r['seconds']:>7}", flush=True)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"grid_n": cfg.grid.n, "rows": rows}, indent=1))
+        args.json.write_text(json.dumps({"grid_n": cfg.grid.n, "settings": args.set, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

@@ -60,8 +60,13 @@ class MserConfig:
     """Measurement region = this multiple of the region's equivalent ellipse (semi-axes 2 sigma)."""
     patch: int = 64
     """Side of the normalised tile, px (holds the whole SIFT support around the disc)."""
-    disc_px: float = 12.0
-    """Radius of the measurement region in the tile, px."""
+    disc_px: float = 9.0
+    """Radius r of the measurement region in the tile, px. The SIFT descriptor (`describe_tiles`)
+    reads pixels up to 2.5 * sqrt(2) * r from the centre (its rotated 4x4 grid of r-wide cells
+    plus interpolation), so r <= 9 keeps it inside a 64 px tile; at r = 12 its corners read the
+    neighbouring tiles of the mosaic, and on the EVD pairs r = 9 gives more matches within
+    sqrt(3) px of the ground truth on cafe, dum, fox, grand and graf, fewer on adam and shop
+    (docs/decisions.md, "The `mser` level")."""
     ratio: float = 0.85
     """FGINN ratio of the region matches (`twosided.fginn_match`): nested regions share a centre,
     so the second neighbour must lie `fginn_px` away."""
@@ -163,7 +168,8 @@ def describe_tiles(tiles: NDArray[np.float32], theta: NDArray[np.float64], disc_
     go side by side into one mosaic and OpenCV's SIFT describes all centres in one call (keypoints
     given at octave 0: one pyramid octave, no upsampling). Keypoint size = 2/3 of the disc radius
     r, so a histogram cell is 3 sigma = r wide and the 4x4 cells span +-2r: the measurement region
-    and as much of its surroundings, which the tile (+-32 px at r = 12) holds under any rotation."""
+    and as much of its surroundings; rotated and with interpolation the descriptor reads up to
+    2.5 * sqrt(2) * r from the centre, inside the tile for `MserConfig.disc_px` <= 9."""
     n, p, _ = tiles.shape
     cols = 64
     rows = (n + cols - 1) // cols
