@@ -58,15 +58,15 @@ class MserConfig:
     """Regions whose ellipse axes differ by more than this factor are dropped (lines, not blobs)."""
     measurement_scale: float = 2.0
     """Measurement region = this multiple of the region's equivalent ellipse (semi-axes 2 sigma)."""
-    patch: int = 64
-    """Side of the normalised tile, px (holds the whole SIFT support around the disc)."""
+    patch: int = 78
+    """Side of the normalised tile, px: the SIFT support around the disc (2.5 sqrt(2) `disc_px`)
+    plus 6 px that the mosaic's blur may reach from the neighbouring tiles (`describe_tiles`)."""
     disc_px: float = 9.0
     """Radius r of the measurement region in the tile, px. The SIFT descriptor (`describe_tiles`)
     reads pixels up to 2.5 * sqrt(2) * r from the centre (its rotated 4x4 grid of r-wide cells
-    plus interpolation), so r <= 9 keeps it inside a 64 px tile; at r = 12 its corners read the
-    neighbouring tiles of the mosaic, and on the EVD pairs r = 9 gives more matches within
-    sqrt(3) px of the ground truth on cafe, dum, fox, grand and graf, fewer on adam and shop
-    (docs/decisions.md, "The `mser` level")."""
+    plus interpolation). At r = 12 in the first version's 64 px tiles its corners read the
+    neighbouring tiles of the mosaic; r = 9 in self-contained tiles gives more matches within
+    sqrt(3) px of the ground truth on the hard EVD pairs (docs/decisions.md, "The `mser` level")."""
     ratio: float = 0.85
     """FGINN ratio of the region matches (`twosided.fginn_match`): nested regions share a centre,
     so the second neighbour must lie `fginn_px` away."""
@@ -163,27 +163,42 @@ def normalised_tiles(gray: NDArray[np.uint8], mu: NDArray[np.float64], shape: ND
     return tiles, M
 
 
+DESCRIBE_CHUNK = 1024
+"""Tiles described per SIFT call: OpenCV builds a float pyramid octave of the whole mosaic (six
+layers, ~25 bytes per pixel), so one call per view cost ~0.4 GB on EVD dum's 4220 tiles."""
+
+
 def describe_tiles(tiles: NDArray[np.float32], theta: NDArray[np.float64], disc_px: float) -> NDArray[np.float32]:
     """RootSIFT (at OpenCV's L2 scale, ~512) of each tile's centre, rotated to `theta`: the tiles
-    go side by side into one mosaic and OpenCV's SIFT describes all centres in one call (keypoints
-    given at octave 0: one pyramid octave, no upsampling). Keypoint size = 2/3 of the disc radius
-    r, so a histogram cell is 3 sigma = r wide and the 4x4 cells span +-2r: the measurement region
-    and as much of its surroundings; rotated and with interpolation the descriptor reads up to
-    2.5 * sqrt(2) * r from the centre, inside the tile for `MserConfig.disc_px` <= 9."""
+    go side by side into mosaics of `DESCRIBE_CHUNK` and OpenCV's SIFT describes all their centres
+    in one call each (keypoints given at octave 0: one pyramid octave, no upsampling). Keypoint
+    size = 2/3 of the disc radius r, so a histogram cell is 3 sigma = r wide and the 4x4 cells
+    span +-2r: the measurement region and as much of its surroundings. Rotated and with
+    interpolation the descriptor reads up to 2.5 * sqrt(2) * r from the centre; the tile must keep
+    it 6 px (the reach of SIFT's initial blur, which crosses tile borders in the mosaic) from its
+    edge, so a descriptor depends on its own tile only, not on its neighbours or the chunking."""
     n, p, _ = tiles.shape
-    cols = 64
-    rows = (n + cols - 1) // cols
-    mosaic = np.zeros((rows * p, cols * p), np.uint8)
-    kps = []
-    for i in range(n):
-        r, c = divmod(i, cols)
-        mosaic[r * p:(r + 1) * p, c * p:(c + 1) * p] = np.clip(tiles[i] + 0.5, 0, 255).astype(np.uint8)
-        kps.append(cv2.KeyPoint(c * p + (p - 1) / 2.0, r * p + (p - 1) / 2.0, disc_px * 2.0 / 3.0,
-                                float(np.degrees(theta[i]) % 360.0)))
-    kps_out, desc = cv2.SIFT.create().compute(mosaic, kps)
-    if desc is None or len(kps_out) != n:
-        raise RuntimeError(f"SIFT described {0 if desc is None else len(kps_out)} of {n} MSER tiles")
-    d = desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-7)
+    reach = 2.5 * np.sqrt(2.0) * disc_px + 6.0
+    if reach > (p - 1) / 2.0:
+        raise ValueError(f"MSER tile of {p} px too small for a {disc_px:g} px disc (needs {2 * reach + 1:.0f} px)")
+    out = np.empty((n, 128), np.float32)
+    cols = 32
+    for start in range(0, n, DESCRIBE_CHUNK):
+        part = tiles[start:start + DESCRIBE_CHUNK]
+        m = len(part)
+        rows = (m + cols - 1) // cols
+        mosaic = np.zeros((rows * p, cols * p), np.uint8)
+        kps = []
+        for i in range(m):
+            r, c = divmod(i, cols)
+            mosaic[r * p:(r + 1) * p, c * p:(c + 1) * p] = np.clip(part[i] + 0.5, 0, 255).astype(np.uint8)
+            kps.append(cv2.KeyPoint(c * p + (p - 1) / 2.0, r * p + (p - 1) / 2.0, disc_px * 2.0 / 3.0,
+                                    float(np.degrees(theta[start + i]) % 360.0)))
+        kps_out, desc = cv2.SIFT.create().compute(mosaic, kps)
+        if desc is None or len(kps_out) != m:
+            raise RuntimeError(f"SIFT described {0 if desc is None else len(kps_out)} of {m} MSER tiles")
+        out[start:start + m] = desc
+    d = out / np.maximum(out.sum(axis=1, keepdims=True), 1e-7)
     return (np.sqrt(d) * 512.0).astype(np.float32)
 
 
