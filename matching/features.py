@@ -76,6 +76,16 @@ class Features:
         return int(self.kpts.nbytes + self.sizes.nbytes + self.angles.nbytes + self.descriptors.nbytes + extra)
 
     @staticmethod
+    def concat(parts: list[Features]) -> Features:
+        """The features of `parts` one after the other (non-empty list); responses and frames are
+        kept when every part has them."""
+        resp = None if any(p.responses is None for p in parts) else np.concatenate([p.responses for p in parts])
+        frames = None if any(p.frames is None for p in parts) else np.concatenate([p.frames for p in parts])
+        return Features(np.concatenate([p.kpts for p in parts]), np.concatenate([p.sizes for p in parts]),
+                        np.concatenate([p.angles for p in parts]), np.concatenate([p.descriptors for p in parts]),
+                        resp, frames)
+
+    @staticmethod
     def empty(dim: int = 128, dtype=np.float32) -> Features:
         return Features(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
                         np.zeros(0, np.float32), np.zeros((0, dim), dtype))

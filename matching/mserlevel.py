@@ -50,10 +50,7 @@ def pooled_mser(ctx: MatchContext, side: int, cfg: MserConfig) -> Features:
     views = view_grid(cfg.grid)
     parts = (list(ctx.pool.map(lambda v: mser_view_features(ctx, side, v, cfg), views)) if ctx.pool is not None
              else [mser_view_features(ctx, side, v, cfg) for v in views])
-    frames = [p.frames if p.frames is not None else np.zeros((len(p), 2, 2)) for p in parts]
-    return Features(np.concatenate([p.kpts for p in parts]).astype(np.float32),
-                    np.concatenate([p.sizes for p in parts]), np.concatenate([p.angles for p in parts]),
-                    np.concatenate([p.descriptors for p in parts]), frames=np.concatenate(frames))
+    return Features.concat(parts)
 
 
 def pooled_with(best: FineMatches, kpts_ref: np.ndarray, kpts_target: np.ndarray, distances: np.ndarray

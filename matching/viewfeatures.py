@@ -73,6 +73,4 @@ def pooled_features(store: FeatureStore, name: str, views: list[ViewParams], det
 
     parts = list(pool.map(one, views)) if pool is not None else [one(v) for v in views]
     view_idx = np.concatenate([np.full(len(f), i, np.int32) for i, f in enumerate(parts)])
-    feats = Features(np.concatenate([f.kpts for f in parts]), np.concatenate([f.sizes for f in parts]),
-                     np.concatenate([f.angles for f in parts]), np.concatenate([f.descriptors for f in parts]))
-    return feats, view_idx
+    return Features.concat(parts), view_idx
