@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .features import Features
-from .geometry import homography_jacobian
+from .refine import local_affines_from_homography
 from .views import GridConfig
 
 
@@ -225,7 +225,7 @@ def laf_errors(H_b_from_a: NDArray[np.float64], kpts_a: NDArray, frames_a: NDArr
                frames_b: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(rotation deg, scale ratio >= 1) of E = inv(F_b) @ J_H(x_a) @ F_a per match: how far the
     frame of a, carried by the homography's local affine map, is from the frame of b."""
-    J = np.stack([homography_jacobian(H_b_from_a, (float(x), float(y))) for x, y in np.asarray(kpts_a)])
+    J = local_affines_from_homography(H_b_from_a, kpts_a)
     E = np.linalg.solve(frames_b, J @ frames_a)
     angle = np.degrees(np.abs(np.arctan2(E[:, 1, 0] - E[:, 0, 1], E[:, 0, 0] + E[:, 1, 1])))
     s = np.linalg.svd(E, compute_uv=False)
