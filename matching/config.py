@@ -47,6 +47,11 @@ class MatcherConfig:
     """What a pair the fast path leaves unverified tries next."""
     refine: RefineConfig = field(default_factory=RefineConfig)
     """Least-squares patch refinement of the final matches (`matching.refine`; not in the paper)."""
+    simulate: bool = True
+    """False: match only the unwarped originals (no coarse search, no simulated view, no
+    escalation; the finishing steps still run). The first pass of `recon run`'s
+    `match.simulate = "needed"` schedule (`recon.core.schedule`), which spends view simulation
+    only on the pairs that this pass leaves weak and the scene needs."""
     adaptive: bool = True
     """Decide per pair how much simulation it needs from the originals' SIFT geometry
     (`matching.adaptive`: `originals`, `targeted` or `full` path, cheapest first, falling through

@@ -73,11 +73,16 @@ class ExtraAffineMatcher:
         cfg = self.cfg
         t_start = time.perf_counter()
         ctx = self.context(store, name0, name1)
-        with ctx.timed("reference"):
-            decision = decide_reference(ctx)
+        if cfg.simulate:
+            with ctx.timed("reference"):
+                decision = decide_reference(ctx)
+        else:  # nothing is simulated: no reference to decide (nor its SIFT at the views' contrast to compute)
+            decision = ReferenceDecision(None, math.nan, math.nan, "originals only: no view simulated")
         path, path_reason = "full", "adaptive off -> full grid"
         best: Attempt | None = None
-        if cfg.adaptive:
+        if not cfg.simulate:
+            best, path, path_reason = originals_only(ctx, decision)
+        elif cfg.adaptive:
             best, path, path_reason = adaptive_paths(ctx, decision)
         if best is None:
             with ctx.timed("coarse"):
@@ -87,12 +92,16 @@ class ExtraAffineMatcher:
             with ctx.timed("fine"):
                 best = max_verified(ctx.fallen_through, fast_path(ctx))
         escalation = ""
-        if should_escalate(cfg.escalation, best.verified, ctx.coarse_inliers()):
+        if cfg.simulate and should_escalate(cfg.escalation, best.verified, ctx.coarse_inliers()):
             with ctx.timed("escalation"):
                 best = escalate(ctx, best, ESCALATION)
             escalation = best.label
-        result = ctx.to_result(best, reason_for(decision, best.reference), decision.f0, decision.f1)
+        result = ctx.to_result(best, reason_for(decision, best.reference),
+                               *((decision.f0, decision.f1) if cfg.simulate else (None, None)))
         result.escalation = escalation
+        result.verified = best.verified
+        if not cfg.simulate:
+            result.reference = None  # neither image was simulated
         with ctx.timed("ransac"):
             for step in FINISHING:
                 if step.applies(ctx, best, result):
@@ -114,7 +123,7 @@ class ExtraAffineMatcher:
                                 reference_reason=result.reference_reason, f0=result.f0, f1=result.f1,
                                 best_views=result.best_views, coarse_scores=result.coarse_scores,
                                 escalation=result.escalation, timings=result.timings, image_sizes=result.image_sizes,
-                                path=result.path, path_reason=result.path_reason)
+                                path=result.path, path_reason=result.path_reason, verified=result.verified)
 
     def close(self) -> None:
         if self._pool_obj is not None:
@@ -133,6 +142,22 @@ def decide_reference(ctx: MatchContext) -> ReferenceDecision:
 def max_verified(a: Attempt | None, b: Attempt) -> Attempt:
     """The attempt with more verified matches (`a` on ties), `b` when there is no `a`."""
     return b if a is None or b.verified > a.verified else a
+
+
+def originals_only(ctx: MatchContext, decision: ReferenceDecision) -> tuple[Attempt, str, str]:
+    """`simulate=False` (the first pass of a scene's `simulate = "needed"` schedule): the
+    originals matched with each other, nothing simulated: (the attempt, "originals" when it
+    verifies `escalation.min_inliers` matches, else "deferred", why). The identity view is
+    symmetric: image 0 is called the reference unless a decision was made."""
+    ref = 0 if decision.reference is None else decision.reference
+    ctx.reference = ref
+    with ctx.timed("originals"):
+        att = originals_attempt(ctx, ref)
+    enough = ctx.cfg.escalation.min_inliers
+    if att.verified >= enough:
+        return att, "originals", f"originals only: {att.verified} verified matches"
+    return att, "deferred", (f"originals only: {att.verified} verified matches (< {enough}); "
+                             "view simulation left to the scene's second pass")
 
 
 def adaptive_paths(ctx: MatchContext, decision: ReferenceDecision) -> tuple[Attempt | None, str, str]:

@@ -76,8 +76,9 @@ class PairResult:
     inlier_mask: NDArray[np.bool_] | None = None
     escalation: str = ""  # "" when the fast path sufficed, else the escalation level used
     reason: str = ""  # why the result is empty or weak; "" when fine
-    path: str = ""  # adaptive path taken: "originals", "targeted" or "full" ("" for other methods)
+    path: str = ""  # path taken: "originals", "targeted" or "full" (adaptive), "deferred" (simulate=False and weak); "" for other methods
     path_reason: str = ""  # why that path (the evidence from the originals and any fall-through)
+    verified: int = -1  # matches the matcher's own check verified (H or F inliers) before the finishing steps; -1: not counted
     timings: dict[str, float] = field(default_factory=dict)
     image_sizes: tuple[tuple[int, int], tuple[int, int]] | None = None  # ((w0, h0), (w1, h1))
 

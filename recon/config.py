@@ -113,6 +113,10 @@ class PairsConfig:
             raise UserError(str(e)) from None
 
 
+SIMULATE = ("all", "needed")
+"""`match.simulate`'s values (`MatchConfig.simulate`)."""
+
+
 @dataclass
 class MatchConfig:
     """The match stage: the pair matcher and where its pair tasks run."""
@@ -132,6 +136,23 @@ class MatchConfig:
     keep the full grid, which measures best on wide baselines. 30, not `--pairs auto`'s 20: the
     benchmark scenes of up to 30 images keep the full grid they were measured with."""
 
+    simulate: str = field(default="all", metadata={"flag": "--simulate", "choices": "recon.config:SIMULATE"})
+    """Which pairs the extra-affine matcher simulates views for: all = every pair (the full
+    grid, or the adaptive paths); needed = every pair's originals first (OpenCV SIFT, no view),
+    then view simulation only on the pairs they leave weak and the scene needs: an image with
+    few strong partners, or a bridge between parts of the strong pair graph
+    (`recon.core.schedule`)."""
+
+    simulate_strong_inliers: int = 100
+    """`simulate = needed`: a pair whose originals verify at least this many matches is strong."""
+
+    simulate_min_partners: int = 3
+    """`simulate = needed`: a weak pair is simulated when one of its images has fewer strong partners."""
+
+    first_pass_contrast: float = 0.02
+    """`simulate = needed`: OpenCV SIFT's contrast threshold on the originals in the first pass
+    (0.02: about the keypoints of COLMAP's default extraction, 4x those of 0.04 at 1600 px)."""
+
     matcher: dict[str, Any] = field(default_factory=dict)
     """The matcher's own options by field name, e.g. {"fine_top_k": 3, "coarse.rank_by": "matches"}
     (`--set matcher.KEY=VALUE`, or a `[matcher]` table in a config file); values are checked
@@ -144,6 +165,14 @@ class MatchConfig:
         if self.method not in METHODS:
             raise UserError(f"--method {self.method!r}: choose one of {', '.join(METHODS)}")
         check_engine(self.engine)
+        if self.simulate not in SIMULATE:
+            raise UserError(f"--simulate {self.simulate!r}: choose all or needed")
+        for name in ("simulate_strong_inliers", "simulate_min_partners"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise UserError(f"match.{name} {v!r}: an integer >= 0")
+        if not isinstance(self.first_pass_contrast, (int, float)) or not 0 < self.first_pass_contrast < 1:
+            raise UserError(f"match.first_pass_contrast {self.first_pass_contrast!r}: a number in (0, 1)")
         if isinstance(self.adaptive_above, bool) or not isinstance(self.adaptive_above, int) or self.adaptive_above < 0:
             raise UserError(f"match.adaptive_above {self.adaptive_above!r}: a number of images >= 0 (0 = never)")
         self.matcher = matcher_options(self.method, self.matcher)

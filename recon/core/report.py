@@ -27,7 +27,9 @@
 * `warnings`, `config` (the RunConfig, nested as `recon.config.RunConfig.to_dict`), `method` (the
   matcher, or `colmap-sift`), `preset` (stock COLMAP's preset; empty for `recon run`),
   `camera_mode_used`, `pairs_computed`, `pairs_cached`, `pairs_expanded` (`+expand:E`: the
-  pairs each match-graph expansion round added; they are part of `pairs`),
+  pairs each match-graph expansion round added; they are part of `pairs`), `pairs_simulated`
+  (pairs whose matching simulated views: every extra-affine pair but those of the `originals`
+  and `deferred` paths, see `match.simulate`),
   `features_computed` / `features_reused` (FeatureStore entries: each image's features are
   computed once per run and shared by all its pairs), `database_reused`, `model_reused`,
   `merge` (keypoint merging counts), `scene`, `out`;
@@ -105,6 +107,7 @@ class RunReport:
     pairs_computed: int = 0
     pairs_cached: int = 0
     pairs_expanded: list[int] = field(default_factory=list)  # match-graph expansion: new pairs per round
+    pairs_simulated: int = 0  # extra-affine pairs whose matching simulated views (not "originals" / "deferred")
     features_computed: int = 0  # FeatureStore entries computed this run (one per image and kind)
     features_reused: int = 0  # entries served from memory or the disk cache
     camera_mode_used: str = ""
@@ -234,6 +237,8 @@ def summary_table(report: RunReport):
     err = report.mean_reprojection_error
     t.add_row("mean reprojection error (px)", "-" if err is None else f"{err:.3f}")
     t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")
+    if report.method == "extra-affine":
+        t.add_row("pairs with simulated views", f"{report.pairs_simulated} / {len(report.pairs)}")
     if report.pairs_expanded:
         t.add_row("  of which from match-graph expansion (per round)", " + ".join(map(str, report.pairs_expanded)))
     verified = sum(1 for p in report.pairs if p.verified_inliers > 0)

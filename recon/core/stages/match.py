@@ -97,14 +97,40 @@ def uses_adaptive_paths(cfg: MatchConfig, num_images: int | None) -> bool:
 
 
 def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1,
-                 num_images: int | None = None) -> PairMatcher:
-    """The registry's matcher for multi-view use, built from `matcher_overrides` (see there)."""
+                 num_images: int | None = None, extra: dict[str, Any] | None = None) -> PairMatcher:
+    """The registry's matcher for multi-view use, built from `matcher_overrides` (see there) and
+    `extra` overrides on top (e.g. `first_pass_overrides`)."""
     cfg = MatchConfig(method=cfg) if isinstance(cfg, str) else cfg
-    overrides = matcher_overrides(cfg, seed, inner_workers, num_images)
+    overrides = {**matcher_overrides(cfg, seed, inner_workers, num_images), **(extra or {})}
     try:
         return get_matcher(cfg.method, **overrides)
     except (TypeError, ValueError) as e:
         raise UserError(f"matcher options {cfg.matcher}: {e}") from None
+
+
+def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
+    """The extra-affine matcher of `simulate = "needed"`'s first pass: the originals only
+    (`simulate=False`), matched with OpenCV's SIFT at `cfg.first_pass_contrast` (about the
+    keypoints of COLMAP's default extraction, for a sixth of its time at 1600 px), whatever the
+    original detector of the second pass; no adaptive paths (nothing is simulated) and no
+    epipolar-guided round: a strong pair's originals already give hundreds to thousands of
+    matches, and the round took a third of the pass (on fountain_P11 without it: 15673 instead
+    of 17647 points, reprojection error 0.396 instead of 0.442 px, rotation error 0.233° instead
+    of 0.234°, total time 48 instead of 66-72 s; docs/decisions.md)."""
+    return {"simulate": False, "adaptive": False, "guided_epipolar": False, "fine__original_detector": "sift",
+            "fine__original_contrast": float(cfg.first_pass_contrast)}
+
+
+def second_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
+    """The full matcher's overrides beyond `matcher_overrides` under `simulate = "needed"`: its
+    originals keep the first pass's features (OpenCV SIFT at `first_pass_contrast`, already
+    computed) unless `matcher.fine.original_detector` is set. Under "needed" a scene should cost
+    about what stock COLMAP's does, and COLMAP's covariant SIFT alone takes 4x stock's extraction
+    (12 CPU s per 1600 px image); the simulated views bring the wide-baseline matches. {} for
+    `simulate = "all"`."""
+    if cfg.method != "extra-affine" or cfg.simulate != "needed" or "fine.original_detector" in cfg.matcher:
+        return {}
+    return {"fine__original_detector": "sift", "fine__original_contrast": float(cfg.first_pass_contrast)}
 
 
 def _replace_path(obj: Any, path: str, value: Any) -> Any:
@@ -139,14 +165,16 @@ class Match:
         cfg, pairs, store = run.cfg, run.data.pairs, run.data.store
         matcher = run.matcher or make_matcher(cfg.match, cfg.seed,
                                               inner_workers=1 if len(pairs) >= cfg.num_workers else 0,
-                                              num_images=len(run.data.scene.images))
+                                              num_images=len(run.data.scene.images),
+                                              extra=second_pass_overrides(cfg.match))
         log.debug("matcher: %s", matcher_identity(matcher))
-        results, cached = self._match_all(run, matcher, run.cache / "pairs")
+        results, cached = self._match_pairs(run, matcher, run.cache / "pairs")
         run.data.results, run.data.cached = results, cached
         self._expand(run, matcher)
         pairs, cached = run.data.pairs, run.data.cached
         report = run.report
         report.pairs_cached = int(sum(cached))
+        report.pairs_simulated = int(sum(1 for r in run.data.results if r.path not in ("originals", "deferred")))
         report.pairs_computed = len(pairs) - report.pairs_cached
         report.features_computed, report.features_reused = int(store.misses), int(store.hits)
         if store.persist_error is not None:
@@ -166,7 +194,7 @@ class Match:
         def match_round(new: list[tuple[str, str]]) -> list[int]:
             first = len(run.data.pairs)
             run.data.pairs = run.data.pairs + new
-            results, cached = Match._match_all(run, matcher, run.cache / "pairs", first)
+            results, cached = Match._match_pairs(run, matcher, run.cache / "pairs", first)
             run.data.results = run.data.results + results
             run.data.cached = run.data.cached + cached
             counts = [r.num_matches for r in results]
@@ -179,7 +207,8 @@ class Match:
         expand(run.data.scene.names, matched, match_round, ecfg)
 
     @staticmethod
-    def _submit(run: Run, matcher: PairMatcher, todo: list[int]) -> dict[Future, int]:
+    def _submit(run: Run, matcher: PairMatcher, todo: list[int],
+                extra: dict[str, Any] | None = None) -> dict[Future, int]:
         """Submit the pairs `todo` to the run's executor: `match_pair_task` over the shared store in
         threads, or `match_pair_on_worker` (a picklable spec: image paths, working size, matcher
         name and options, seed, the shared feature cache) on Dask workers, which rebuild the same
@@ -190,48 +219,108 @@ class Match:
         from recon.core.dask_engine import match_pair_on_worker, pair_task_specs
 
         cfg = run.cfg
-        overrides = tuple(sorted(matcher_overrides(cfg.match, cfg.seed, inner_workers=1,
-                                                   num_images=len(run.data.scene.images)).items()))
+        overrides = tuple(sorted({**matcher_overrides(cfg.match, cfg.seed, inner_workers=1,
+                                                      num_images=len(run.data.scene.images)),
+                                  **(extra or {})}.items()))
         specs = pair_task_specs(run.data.scene, [pairs[i] for i in todo], cfg.match.method, cfg.seed,
                                 cfg.load.max_size or None, run.cache / "features", overrides)
         return {ex.submit(match_pair_on_worker, spec): i for spec, i in zip(specs, todo)}
+
+    @staticmethod
+    def _match_pairs(run: Run, matcher: PairMatcher, pair_dir: Path, first: int = 0
+                     ) -> tuple[list[PairResult], list[bool]]:
+        """The pairs `run.data.pairs[first:]` under `match.simulate` (one pass for "all", two for
+        "needed", `_match_needed`); their results and cache flags in pair order."""
+        if run.cfg.match.simulate == "needed" and run.cfg.match.method == "extra-affine":
+            return Match._match_needed(run, matcher, pair_dir, first)
+        return Match._match_all(run, matcher, pair_dir, first)
+
+    @staticmethod
+    def _match_needed(run: Run, matcher: PairMatcher, pair_dir: Path, first: int
+                      ) -> tuple[list[PairResult], list[bool]]:
+        """`simulate = "needed"`: every pair's originals first (`first_pass_overrides`), then
+        `matcher` (the full one) on the weak pairs the scene needs (`recon.core.schedule`); the
+        others keep their first-pass result, with the decision appended to its `path_reason`."""
+        from recon.core.schedule import ScheduleConfig, pairs_to_simulate
+
+        cfg = run.cfg.match
+        extra = first_pass_overrides(cfg)
+        cheap = make_matcher(cfg, run.cfg.seed, inner_workers=1 if len(run.data.pairs) - first >= run.cfg.num_workers
+                             else 0, num_images=len(run.data.scene.images), extra=extra)
+        n = len(run.data.pairs)
+        done = Match._match_indices(run, cheap, pair_dir, list(range(first, n)), extra, emit=False)
+        results = {i: r for i, (r, _) in done.items()}
+        cached = {i: c for i, (_, c) in done.items()}
+        pairs = run.data.pairs[first:]
+        verified = [results[first + k].verified if results[first + k].verified >= 0 else results[first + k].num_matches
+                    for k in range(len(pairs))]
+        choices = pairs_to_simulate(run.data.scene.names, pairs, verified,
+                                    ScheduleConfig(cfg.simulate_strong_inliers, cfg.simulate_min_partners))
+        todo = [first + c.index for c in choices if c.simulate]
+        log.info("simulate=needed: %d of %d pairs solved by their originals (>= %d matches), %d weak pairs "
+                 "simulated, %d left", len(pairs) - len(choices), len(pairs), cfg.simulate_strong_inliers, len(todo),
+                 len(choices) - len(todo))
+        for c in choices:
+            i = first + c.index
+            r = results[i]
+            r.path_reason = f"{r.path_reason}; {c.reason}" if r.path_reason else c.reason
+        for i in range(first, n):
+            if i not in todo:
+                run.observer.on_pair(i, *run.data.pairs[i], results[i], cached[i])
+        if todo:
+            simulated = Match._match_indices(run, matcher, pair_dir, todo, second_pass_overrides(cfg), emit=True)
+            for i, (r, c) in simulated.items():
+                r.path_reason = f"{results[i].path_reason}; {r.path_reason}" if r.path_reason else results[i].path_reason
+                results[i], cached[i] = r, c and cached[i]
+        return [results[i] for i in range(first, n)], [cached[i] for i in range(first, n)]
 
     @staticmethod
     def _match_all(run: Run, matcher: PairMatcher, pair_dir: Path, first: int = 0
                    ) -> tuple[list[PairResult], list[bool]]:
         """The pairs `run.data.pairs[first:]`, from the cache or computed on the executor; their
         results and cache flags in pair order (indices in events and tasks are the global ones)."""
+        n = len(run.data.pairs)
+        done = Match._match_indices(run, matcher, pair_dir, list(range(first, n)), None, emit=True)
+        return [done[i][0] for i in range(first, n)], [done[i][1] for i in range(first, n)]
+
+    @staticmethod
+    def _match_indices(run: Run, matcher: PairMatcher, pair_dir: Path, indices: list[int],
+                       extra: dict[str, Any] | None, emit: bool) -> dict[int, tuple[PairResult, bool]]:
+        """The pairs `run.data.pairs[i]` for `i` in `indices`, from the cache or computed on the
+        executor: {index: (result, cached)}. `extra` = the matcher's overrides beyond
+        `matcher_overrides` (for Dask workers); `emit` = report each pair to the observers."""
         pairs = run.data.pairs
-        advance = run.bar(len(pairs) - first)
+        advance = run.bar(len(indices))
         images = {im.name: im for im in run.data.scene.images}
         mid = matcher_identity(matcher)
         results: list[PairResult | None] = [None] * len(pairs)
         cached = [False] * len(pairs)
-        paths = [pair_dir / f"{pair_cache_key(mid, images[a], images[b])}.npz" if i >= first else None
-                 for i, (a, b) in enumerate(pairs)]
+        paths: list[Path | None] = [None] * len(pairs)
         todo: list[int] = []
-        for i, (a, b) in enumerate(pairs):
-            if i < first:
-                continue
+        for i in indices:
+            a, b = pairs[i]
+            paths[i] = pair_dir / f"{pair_cache_key(mid, images[a], images[b])}.npz"
             r = load_pair_result(paths[i])  # type: ignore[arg-type]
             if r is None:
                 todo.append(i)
                 continue
             results[i], cached[i] = r, True
             advance()
-            run.observer.on_pair(i, a, b, r, True)
+            if emit:
+                run.observer.on_pair(i, a, b, r, True)
         if todo:
             pair_dir.mkdir(parents=True, exist_ok=True)
             with contextlib.ExitStack() as stack:
                 if not getattr(run.executor, "distributed", False):
                     # pair threads: COLMAP's covariant SIFT in child processes (it holds the GIL)
                     stack.enter_context(extraction_processes(min(run.cfg.num_workers, len(todo))))
-                Match._collect(run, Match._submit(run, matcher, todo), paths, results, advance, images, matcher)
-        return cast(list[PairResult], results[first:]), cached[first:]  # every slot from `first` is filled above
+                Match._collect(run, Match._submit(run, matcher, todo, extra), paths, results, advance, images,
+                               matcher, emit)
+        return {i: (cast(PairResult, results[i]), cached[i]) for i in indices}  # every index is filled above
 
     @staticmethod
     def _collect(run: Run, futures: dict[Future, int], paths: list[Path | None], results: list[PairResult | None],
-                 advance: Any, images: dict[str, Any], matcher: PairMatcher) -> None:
+                 advance: Any, images: dict[str, Any], matcher: PairMatcher, emit: bool = True) -> None:
         """Wait for the submitted pairs; write each to the pair cache as it finishes and store what
         a resumed run would load in `results` (pair order); one failing pair is a warning."""
         pairs = run.data.pairs
@@ -249,6 +338,8 @@ class Match:
                         results[i] = PairResult.empty(getattr(matcher, "name", "?"),
                                                       f"matcher error: {type(e).__name__}: {e}")
                         advance()
+                        if emit:
+                            run.observer.on_pair(i, a, b, results[i], False)  # type: ignore[arg-type]
                         continue
                     full = result_to_full_res(raw, images[a], images[b])
                     path = cast(Path, paths[i])
@@ -258,7 +349,8 @@ class Match:
                     advance()
                     log.debug("pair %d %s / %s: %d matches in %.2f s%s", i, a, b, r.num_matches,
                               r.timings.get("total", 0.0), f" ({r.reason})" if r.reason else "")
-                    run.observer.on_pair(i, a, b, r, False)
+                    if emit:
+                        run.observer.on_pair(i, a, b, r, False)
         except BaseException:  # Ctrl-C, a failing cache write: drop the tasks not started yet
             for f in pending:
                 f.cancel()
