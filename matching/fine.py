@@ -19,7 +19,6 @@ around a fundamental matrix's epipolar line (`epipolar_guided_match`).
 from __future__ import annotations
 
 import dataclasses
-
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Literal

@@ -76,9 +76,9 @@ class PairResult:
     inlier_mask: NDArray[np.bool_] | None = None
     escalation: str = ""  # "" when the fast path sufficed, else the escalation level used
     reason: str = ""  # why the result is empty or weak; "" when fine
-    path: str = ""  # path taken: "originals", "targeted" or "full" (adaptive), "deferred" (simulate=False and weak); "" for other methods
+    path: str = ""  # "originals" / "targeted" / "full" (adaptive), "deferred" (simulate=False, weak); "" other methods
     path_reason: str = ""  # why that path (the evidence from the originals and any fall-through)
-    verified: int = -1  # matches the matcher's own check verified (H or F inliers) before the finishing steps; -1: not counted
+    verified: int = -1  # matches its own check verified (H / F inliers) before the finishing steps; -1: not counted
     timings: dict[str, float] = field(default_factory=dict)
     image_sizes: tuple[tuple[int, int], tuple[int, int]] | None = None  # ((w0, h0), (w1, h1))
 
@@ -114,7 +114,8 @@ class PairResult:
             reference=ref, reference_reason=self.reference_reason, f0=self.f1, f1=self.f0,
             best_views=self.best_views, coarse_scores=self.coarse_scores, H_1_from_0=H,
             inlier_mask=self.inlier_mask, escalation=self.escalation, reason=self.reason,
-            path=self.path, path_reason=self.path_reason, timings=dict(self.timings), image_sizes=sizes,
+            path=self.path, path_reason=self.path_reason, verified=self.verified, timings=dict(self.timings),
+            image_sizes=sizes,
         )
 
     @staticmethod

@@ -13,7 +13,16 @@ import typer
 
 from recon.cli._options import json_file
 from recon.cli.options import image_size as parse_image_size
-from recon.cli.options import progress_option, seed_option, stock_presets, stock_presets_option, workers_option
+from recon.cli.options import (
+    our_settings,
+    progress_option,
+    seed_option,
+    set_option,
+    simulate_option,
+    stock_presets,
+    stock_presets_option,
+    workers_option,
+)
 from recon.config import DEFAULT_MAX_SIZE
 
 bench_app = typer.Typer(name="bench", help="Benchmarks against ground truth.", no_args_is_help=True,
@@ -98,6 +107,8 @@ def scenes_cmd(
     max_size: Annotated[int, typer.Option("--max-size", help="Working resolution (longer side, px; 0 = full).")]
         = DEFAULT_MAX_SIZE,
     pairs: Annotated[str, typer.Option("--pairs", help="Pair selection for both pipelines.")] = "exhaustive",
+    simulate: Annotated[str, simulate_option()] = "all",
+    settings: Annotated[Optional[list[str]], set_option()] = None,
     seed: Annotated[int, seed_option()] = 0,
     workers: Annotated[int, workers_option()] = 0,
     progress: Annotated[bool, progress_option()] = True,
@@ -122,7 +133,8 @@ def scenes_cmd(
     with claim_output(out_root, "bench", default_out=out is None, legacy=("*/compare.json",)) as out_root:
         results = run_scenes(root, out_root, names, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
                              workers=workers, progress=progress, json_path=json_out,
-                             log=lambda m: err.print(f"recon: {m}", markup=False))
+                             log=lambda m: err.print(f"recon: {m}", markup=False),
+                             settings=our_settings(simulate, settings))
     Console(width=None if sys.stdout.isatty() else 160).print(scenes_table(results, max_size))
     if json_out is not None:
         typer.echo(f"JSON: {json_out}")

@@ -10,13 +10,16 @@ import typer
 
 from recon.cli.options import (
     deprecated_stock_preset_option,
+    our_settings,
     progress_option,
     seed_option,
+    set_option,
+    simulate_option,
     stock_presets,
     stock_presets_option,
     workers_option,
 )
-from recon.config import DEFAULT_MAX_SIZE
+from recon.config import DEFAULT_MAX_SIZE, build_run_config
 
 
 def register(app: typer.Typer) -> None:
@@ -33,6 +36,8 @@ def register(app: typer.Typer) -> None:
                                                                  "(longer side, px; 0 = full).")] = DEFAULT_MAX_SIZE,
         pairs: Annotated[str, typer.Option("--pairs", help="exhaustive, sequential:K, or a file of name pairs.")]
             = "exhaustive",
+        simulate: Annotated[str, simulate_option()] = "all",
+        settings: Annotated[Optional[list[str]], set_option()] = None,
         seed: Annotated[int, seed_option()] = 0,
         workers: Annotated[int, workers_option()] = 0,
         progress: Annotated[bool, progress_option()] = True,
@@ -55,6 +60,8 @@ def register(app: typer.Typer) -> None:
 
         presets = stock_presets(stock_presets_, stock_preset)
         RunConfig.from_options(max_size=max_size, pairs=pairs, seed=seed)  # validates the shared options (UserError)
+        ours = our_settings(simulate, settings)
+        build_run_config(settings=ours)  # --simulate and --set checked before anything is created (UserError)
         require_images(scene_dir.expanduser())  # before anything is created
         out_dir = (out or scene_dir / "compare").expanduser().absolute()
         try:
@@ -67,6 +74,7 @@ def register(app: typer.Typer) -> None:
         with claim_output(out_dir, "compare", default_out=out is None, legacy=("compare.json",)) as out_dir:
             res = compare_scene(scene_dir, out_dir, presets=presets, max_size=max_size, pairs=pairs, seed=seed,
                                 workers=workers, progress=progress, log=lambda m: err.print(f"recon: {m}", markup=False),
+                                settings=ours,
                                 on_warning=lambda m: print(f"recon: warning: {m}", file=sys.stderr))
             console = Console(width=None if sys.stdout.isatty() else 140)
             console.print(compare_table(res))

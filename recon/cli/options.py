@@ -57,6 +57,27 @@ def flag(*names: str, help: str) -> Any:
     return typer.Option(*names, help=help, metavar="")
 
 
+SIMULATE_HELP = ("Which pairs our pipeline simulates views for: all (every pair, the default of recon run) or "
+                 "needed (every pair's originals first, then only the weak pairs the scene needs).")
+SET_HELP = "A `recon run --set KEY=VALUE` for our pipeline (repeatable)."
+
+
+def simulate_option() -> Any:
+    """`--simulate all|needed` of the commands that run our pipeline beside stock COLMAP."""
+    from recon.config import SIMULATE
+
+    return typer.Option("--simulate", help=SIMULATE_HELP, metavar=choices_metavar(SIMULATE))
+
+
+def set_option() -> Any:
+    return typer.Option("--set", help=SET_HELP, metavar="KEY=VALUE")
+
+
+def our_settings(simulate: str, settings: list[str] | None) -> list[str]:
+    """`--simulate` and `--set` as `recon run --set` strings (`--set` last: it wins)."""
+    return [f"match.simulate={simulate}", *(settings or [])]
+
+
 def stock_presets_option() -> Any:
     return typer.Option("--stock-presets", help=STOCK_PRESETS_HELP,
                         metavar=choices_metavar(p.value for p in StockPreset) + ",...")

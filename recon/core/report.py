@@ -28,8 +28,8 @@
   matcher, or `colmap-sift`), `preset` (stock COLMAP's preset; empty for `recon run`),
   `camera_mode_used`, `pairs_computed`, `pairs_cached`, `pairs_expanded` (`+expand:E`: the
   pairs each match-graph expansion round added; they are part of `pairs`), `pairs_simulated`
-  (pairs whose matching simulated views: every extra-affine pair but those of the `originals`
-  and `deferred` paths, see `match.simulate`),
+  (extra-affine pairs whose matching simulated views: paths `targeted` and `full`, not
+  `originals` or `deferred`; see `match.simulate`),
   `features_computed` / `features_reused` (FeatureStore entries: each image's features are
   computed once per run and shared by all its pairs), `database_reused`, `model_reused`,
   `merge` (keypoint merging counts), `scene`, `out`;
@@ -107,7 +107,7 @@ class RunReport:
     pairs_computed: int = 0
     pairs_cached: int = 0
     pairs_expanded: list[int] = field(default_factory=list)  # match-graph expansion: new pairs per round
-    pairs_simulated: int = 0  # extra-affine pairs whose matching simulated views (not "originals" / "deferred")
+    pairs_simulated: int = 0  # extra-affine pairs whose matching simulated views (path "targeted" or "full")
     features_computed: int = 0  # FeatureStore entries computed this run (one per image and kind)
     features_reused: int = 0  # entries served from memory or the disk cache
     camera_mode_used: str = ""

@@ -10,7 +10,8 @@ originals leave a pair weak *and* the scene needs that pair. The strong pairs (a
   no pairs: its registration and the triangulation of its points rest on the weak ones), and
   the pair is among that image's most promising weak pairs, or
 - its images lie in different connected components of the strong graph (the pair may be the
-  only bridge between two parts of the scene), and it is among the most promising such bridges.
+  only bridge between two parts of the scene), and it is among the most promising pairs out of
+  one of them.
 
 A weak pair between two well-connected images of one component is left with its first-pass
 matches: the scene registers and triangulates through its strong pairs, and simulating it costs
@@ -33,7 +34,7 @@ class ScheduleConfig:
     min_partners: int = 3
     """A weak pair is simulated when one of its images has fewer strong partners than this (and
     it is among that image's 2 x (this - partners) most promising weak pairs); also the number of
-    bridges simulated between two parts of the strong graph."""
+    pairs simulated out of each part of the strong graph."""
 
 
 @dataclass(frozen=True)
@@ -66,22 +67,25 @@ def components(names: Sequence[str], edges: Sequence[tuple[str, str]]) -> dict[s
 
 
 def pairs_to_simulate(names: Sequence[str], pairs: Sequence[tuple[str, str]], verified: Sequence[int],
-                      cfg: ScheduleConfig) -> list[SimulationChoice]:
+                      cfg: ScheduleConfig, first: int = 0) -> list[SimulationChoice]:
     """The decision for every weak pair (fewer than `cfg.strong_inliers` first-pass `verified`
-    matches), in pair order (module doc); strong pairs are not listed.
+    matches) from index `first` on, in pair order (module doc); strong pairs are not listed. The
+    pairs before `first` (matched earlier, e.g. before a match-graph expansion round) count in
+    the strong graph and in the quotas but are not decided again.
 
-    Bounded so that the simulated pairs grow linearly with the images: an image short of
-    `min_partners` strong partners by d gets its 2d most promising weak pairs simulated (most
-    first-pass matches first, then pair order), not all of them; a pair bridging two parts of
-    the strong graph is simulated when it is among the `min_partners` most promising bridges
-    between those two parts."""
+    Bounded so that the simulated pairs grow linearly with the images (at most 3 x
+    `min_partners` per image): an image short of `min_partners` strong partners by d gets its 2d
+    most promising weak pairs simulated (most first-pass matches first, then pair order), not
+    all of them; a pair between two parts of the strong graph is simulated while either part has
+    had fewer than `min_partners` such pairs simulated."""
     strong = [p for p, n in zip(pairs, verified) if n >= cfg.strong_inliers]
     degree = {n: 0 for n in names}
     for a, b in strong:
         degree[a] += 1
         degree[b] += 1
     comp = components(names, strong)
-    weak = sorted((i for i, n in enumerate(verified) if n < cfg.strong_inliers), key=lambda i: (-verified[i], i))
+    weak = sorted((i for i, n in enumerate(verified) if n < cfg.strong_inliers and i >= first),
+                  key=lambda i: (-verified[i], i))
     reasons: dict[int, str] = {}
     taken = {n: 0 for n in names}
     for i in weak:  # images short of strong partners: their most promising weak pairs
@@ -92,12 +96,14 @@ def pairs_to_simulate(names: Sequence[str], pairs: Sequence[tuple[str, str]], ve
                 taken[x] += 1
             why = ", ".join(f"{x} has {degree[x]}" for x in short)
             reasons[i] = f"{why} strong partners (< {cfg.min_partners})"
-    bridges: dict[tuple[int, int], int] = {}
-    for i in weak:  # the most promising bridges between parts of the strong graph
+    bridges = dict.fromkeys(comp.values(), 0)
+    for i in weak:  # each part of the strong graph: its most promising pairs to other parts
         a, b = pairs[i]
-        key = (min(comp[a], comp[b]), max(comp[a], comp[b]))
-        if key[0] != key[1] and i not in reasons and bridges.get(key, 0) < cfg.min_partners:
-            bridges[key] = bridges.get(key, 0) + 1
+        if comp[a] == comp[b] or i in reasons:
+            continue
+        if bridges[comp[a]] < cfg.min_partners or bridges[comp[b]] < cfg.min_partners:
+            bridges[comp[a]] += 1
+            bridges[comp[b]] += 1
             reasons[i] = "the images are in different parts of the strong pair graph"
     out = []
     for i in sorted(weak):

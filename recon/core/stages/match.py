@@ -121,18 +121,6 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
             "fine__original_contrast": float(cfg.first_pass_contrast)}
 
 
-def second_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
-    """The full matcher's overrides beyond `matcher_overrides` under `simulate = "needed"`: its
-    originals keep the first pass's features (OpenCV SIFT at `first_pass_contrast`, already
-    computed) unless `matcher.fine.original_detector` is set. Under "needed" a scene should cost
-    about what stock COLMAP's does, and COLMAP's covariant SIFT alone takes 4x stock's extraction
-    (12 CPU s per 1600 px image); the simulated views bring the wide-baseline matches. {} for
-    `simulate = "all"`."""
-    if cfg.method != "extra-affine" or cfg.simulate != "needed" or "fine.original_detector" in cfg.matcher:
-        return {}
-    return {"fine__original_detector": "sift", "fine__original_contrast": float(cfg.first_pass_contrast)}
-
-
 def _replace_path(obj: Any, path: str, value: Any) -> Any:
     head, _, rest = path.partition(".")
     return dataclasses.replace(obj, **{head: _replace_path(getattr(obj, head), rest, value) if rest else value})
@@ -165,8 +153,7 @@ class Match:
         cfg, pairs, store = run.cfg, run.data.pairs, run.data.store
         matcher = run.matcher or make_matcher(cfg.match, cfg.seed,
                                               inner_workers=1 if len(pairs) >= cfg.num_workers else 0,
-                                              num_images=len(run.data.scene.images),
-                                              extra=second_pass_overrides(cfg.match))
+                                              num_images=len(run.data.scene.images))
         log.debug("matcher: %s", matcher_identity(matcher))
         results, cached = self._match_pairs(run, matcher, run.cache / "pairs")
         run.data.results, run.data.cached = results, cached
@@ -174,7 +161,7 @@ class Match:
         pairs, cached = run.data.pairs, run.data.cached
         report = run.report
         report.pairs_cached = int(sum(cached))
-        report.pairs_simulated = int(sum(1 for r in run.data.results if r.path not in ("originals", "deferred")))
+        report.pairs_simulated = int(sum(1 for r in run.data.results if r.path in ("targeted", "full")))
         report.pairs_computed = len(pairs) - report.pairs_cached
         report.features_computed, report.features_reused = int(store.misses), int(store.hits)
         if store.persist_error is not None:
@@ -251,24 +238,24 @@ class Match:
         done = Match._match_indices(run, cheap, pair_dir, list(range(first, n)), extra, emit=False)
         results = {i: r for i, (r, _) in done.items()}
         cached = {i: c for i, (_, c) in done.items()}
-        pairs = run.data.pairs[first:]
-        verified = [results[first + k].verified if results[first + k].verified >= 0 else results[first + k].num_matches
-                    for k in range(len(pairs))]
-        choices = pairs_to_simulate(run.data.scene.names, pairs, verified,
-                                    ScheduleConfig(cfg.simulate_strong_inliers, cfg.simulate_min_partners))
-        todo = [first + c.index for c in choices if c.simulate]
+        earlier = list(run.data.results[:first]) if first else []  # expansion: the earlier rounds count too
+        every = earlier + [results[i] for i in range(first, n)]
+        verified = [r.verified if r.verified >= 0 else r.num_matches for r in every]
+        choices = pairs_to_simulate(run.data.scene.names, run.data.pairs, verified,
+                                    ScheduleConfig(cfg.simulate_strong_inliers, cfg.simulate_min_partners), first)
+        todo = [c.index for c in choices if c.simulate]
         log.info("simulate=needed: %d of %d pairs solved by their originals (>= %d matches), %d weak pairs "
-                 "simulated, %d left", len(pairs) - len(choices), len(pairs), cfg.simulate_strong_inliers, len(todo),
+                 "simulated, %d left", n - first - len(choices), n - first, cfg.simulate_strong_inliers, len(todo),
                  len(choices) - len(todo))
         for c in choices:
-            i = first + c.index
-            r = results[i]
+            r = results[c.index]
             r.path_reason = f"{r.path_reason}; {c.reason}" if r.path_reason else c.reason
+        simulate = set(todo)
         for i in range(first, n):
-            if i not in todo:
+            if i not in simulate:
                 run.observer.on_pair(i, *run.data.pairs[i], results[i], cached[i])
         if todo:
-            simulated = Match._match_indices(run, matcher, pair_dir, todo, second_pass_overrides(cfg), emit=True)
+            simulated = Match._match_indices(run, matcher, pair_dir, todo, None, emit=True)
             for i, (r, c) in simulated.items():
                 r.path_reason = f"{results[i].path_reason}; {r.path_reason}" if r.path_reason else results[i].path_reason
                 results[i], cached[i] = r, c and cached[i]

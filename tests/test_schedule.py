@@ -1,0 +1,145 @@
+"""`match.simulate = "needed"`: the originals-only first pass and the second-pass selection."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from matching.config import MatcherConfig
+from matching.io import load_gray
+from matching.matcher import ExtraAffineMatcher
+from matching.store import FeatureStore
+from recon.core.schedule import ScheduleConfig, components, pairs_to_simulate
+
+
+def _choices(names, weighted):
+    pairs = [p for p, _ in weighted]
+    out = pairs_to_simulate(names, pairs, [n for _, n in weighted], ScheduleConfig())
+    return {pairs[c.index]: c for c in out}
+
+
+def test_components_ignore_the_edge_order():
+    names = list("abcde")
+    edges = [("d", "e"), ("b", "c"), ("a", "b")]
+    assert components(names, edges) == components(names, edges[::-1]) == {"a": 0, "b": 0, "c": 0, "d": 3, "e": 3}
+
+
+def test_weak_pairs_between_well_connected_images_are_not_simulated():
+    names = list("ABCDFE")
+    strong = [(p, 500) for p in itertools.combinations("ABCD", 2)] + [(("A", "F"), 300), (("B", "F"), 300),
+                                                                        (("C", "F"), 300)]
+    weak = [(("D", "F"), 60)] + [((x, "E"), n) for x, n in zip("ABCDF", (40, 30, 20, 10, 5))]
+    ch = _choices(names, strong + weak)
+    assert set(ch) == {p for p, _ in weak}  # strong pairs are not listed
+    assert not ch[("D", "F")].simulate and "not simulated" in ch[("D", "F")].reason  # both have >= 3 partners
+    # E has no strong partner: its 2 x 3 most promising weak pairs (here all 5) are simulated
+    assert all(ch[(x, "E")].simulate for x in "ABCDF")
+    assert "E has 0 strong partners (< 3)" in ch[("A", "E")].reason
+
+
+def test_a_short_image_gets_only_its_most_promising_weak_pairs():
+    names = ["hub", "x", "y", "z"] + [f"w{k}" for k in range(6)]
+    strong = [(("hub", n), 400) for n in ("x", "y", "z")] + [(("x", "y"), 400), (("y", "z"), 400), (("x", "z"), 400)]
+    strong += [(("x", f"w{k}"), 200) for k in range(6)] + [(("y", f"w{k}"), 200) for k in range(6)]
+    strong += [(("z", f"w{k}"), 200) for k in range(6)]
+    # every w has 3 strong partners; "hub" has 3 too; one more image with a single strong partner
+    names.append("lonely")
+    strong.append((("hub", "lonely"), 150))
+    weak = [((f"w{k}", "lonely"), 90 - 10 * k) for k in range(6)]
+    ch = _choices(names, strong + weak)
+    chosen = [p for p, c in ch.items() if c.simulate]
+    assert chosen == [("w0", "lonely"), ("w1", "lonely"), ("w2", "lonely"), ("w3", "lonely")]  # 2 x (3 - 1)
+
+
+def test_two_strong_clusters_get_a_few_bridges_not_every_cross_pair():
+    names = list("ABCDEFGH")
+    strong = [(p, 900) for p in itertools.combinations("ABCD", 2)] + [(p, 900) for p in itertools.combinations("EFGH", 2)]
+    cross = [((a, b), 10 + 3 * k) for k, (a, b) in enumerate(itertools.product("ABCD", "EFGH"))]
+    ch = _choices(names, strong + cross)
+    chosen = sorted((p for p, c in ch.items() if c.simulate), key=lambda p: -dict(cross)[p])
+    best3 = sorted(cross, key=lambda w: -w[1])[:3]
+    assert chosen == [p for p, _ in best3]
+    assert all("different parts" in ch[p].reason for p in chosen)
+
+
+def test_an_all_weak_scene_simulates_every_pair_of_a_small_capture_and_a_linear_number_of_a_large_one():
+    small = [f"v{k}" for k in range(4)]
+    pairs = list(itertools.combinations(small, 2))
+    assert all(c.simulate for c in pairs_to_simulate(small, pairs, [0] * len(pairs), ScheduleConfig()))
+    big = [f"v{k:02d}" for k in range(40)]
+    pairs = list(itertools.combinations(big, 2))
+    n = sum(c.simulate for c in pairs_to_simulate(big, pairs, [5] * len(pairs), ScheduleConfig()))
+    assert n <= 3 * 3 * len(big) < len(pairs)
+
+
+# --- the matcher's first pass ---------------------------------------------------------------------
+def _store(scene, *names):
+    store = FeatureStore()
+    for n in names:
+        store.add_image(n, load_gray(scene / "images" / n))
+    return store
+
+
+def _first_pass() -> MatcherConfig:
+    from recon.config import MatchConfig
+    from recon.core.stages.match import first_pass_overrides, make_matcher
+
+    return make_matcher(MatchConfig(simulate="needed"), extra=first_pass_overrides(MatchConfig())).cfg
+
+
+def test_first_pass_matches_only_the_originals_of_an_easy_pair(corner_scene):
+    a, b = "view_02.png", "view_03.png"  # neighbouring views of the corner, 17 degrees apart
+    cfg = replace(_first_pass(), workers=1)
+    assert not cfg.simulate and cfg.fine.original_detector == "sift" and cfg.fine.original_contrast == 0.02
+    r = ExtraAffineMatcher(cfg).match(_store(corner_scene, a, b), a, b)
+    assert r.path == "originals" and r.path_reason.startswith("originals only")
+    assert r.coarse_scores == [] and [v.is_identity for v in r.best_views] == [True]
+    assert r.reference is None and r.escalation == ""
+    assert "coarse" not in r.timings and "reference" not in r.timings
+    assert r.verified >= 100 and r.num_matches >= r.verified * 0.8
+
+
+def test_first_pass_defers_a_grazing_pair(facade_extreme_scene):
+    a, b = "view_00.png", "view_01.png"  # grazing views of the facade: the originals barely match
+    r = ExtraAffineMatcher(replace(_first_pass(), workers=1)).match(_store(facade_extreme_scene, a, b), a, b)
+    assert r.path == "deferred", r.path_reason
+    assert 0 <= r.verified < 30 and "second pass" in r.path_reason
+    assert r.coarse_scores == []
+
+
+# --- the stage ------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_recon_run_simulates_only_the_pairs_the_scene_needs_and_resumes_from_both_passes(
+        facade_extreme_scene, corner_scene, tmp_path):
+    from recon.config import RunConfig
+    from recon.core.pipeline import run_scene
+
+    # grazing views: at most one strong pair, so every weak pair is simulated (no image has 3 strong partners)
+    out = tmp_path / "extreme"
+    rep = run_scene(facade_extreme_scene, RunConfig.from_options(out=out, progress=False, simulate="needed"))
+    assert rep.ok and rep.registered_images == 4
+    rows = json.loads((out / "report.json").read_text())["pairs"]
+    assert len(rows) == 6 and rep.pairs_simulated >= 5
+    weak = [p for p in rows if p["path"] != "originals"]
+    assert len(weak) == rep.pairs_simulated
+    assert all("-> simulated" in p["path_reason"] and p["path"] == "full" for p in weak)
+
+    # the easy corner: its neighbouring pairs are strong, the rest are decided by the graph
+    out = tmp_path / "corner"
+    cfg = RunConfig.from_options(out=out, progress=False, simulate="needed", workers=1)
+    rep = run_scene(corner_scene, cfg)
+    assert rep.ok and rep.registered_images == rep.num_images >= 4
+    data = json.loads((out / "report.json").read_text())
+    paths = [p["path"] for p in data["pairs"]]
+    assert paths.count("originals") >= 3
+    assert rep.pairs_simulated == sum(p in ("targeted", "full") for p in paths)
+    for p in data["pairs"]:  # a pair is simulated exactly when the schedule said so
+        assert ("-> simulated" in p["path_reason"]) == (p["path"] not in ("originals", "deferred")), p
+    again = run_scene(corner_scene, cfg)  # resumed: both passes come from the pair cache
+    assert again.pairs_cached == len(paths) and again.pairs_computed == 0
+    assert again.num_points3D == rep.num_points3D
+    assert np.isclose(again.mean_reprojection_error, rep.mean_reprojection_error)
