@@ -168,18 +168,23 @@ def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
     root = facade.parent
     js = tmp_path / "scenes.json"
     assert main(["bench", "scenes", str(root), "--json", str(js), "--out", str(tmp_path / "o"),
-                 "--max-size", "640"]) == 0
+                 "--max-size", "640", "--simulate", "needed"]) == 0
     data = json.loads(js.read_text())
     assert [Path(s["scene"]).name for s in data["scenes"]] == ["facade-extreme"]
     assert {r["method"] for r in data["rows"]} == {"stock-default", "extra_affine"}
     assert (tmp_path / "o" / "facade-extreme" / "compare.json").is_file()
+    ours = json.loads((tmp_path / "o" / "facade-extreme" / "extra_affine" / "report.json").read_text())
+    assert ours["config"]["match"]["simulate"] == "needed"  # --simulate reached our run
+    assert ours["pairs_simulated"] >= 5 and ours["registered_images"] == 4  # grazing pairs: simulated where weak
     assert "facade-extreme" in capsys.readouterr().out
     # user errors: one line, exit 2
     assert main(["bench", "scenes", str(tmp_path / "nope")]) == 2
     assert main(["compare", str(facade), "--stock-preset", "bogus", "--out", str(tmp_path / "x")]) == 2
     assert main(["compare", str(tmp_path / "nope")]) == 2
+    assert main(["compare", str(facade), "--simulate", "sometimes", "--out", str(tmp_path / "y")]) == 2
+    assert not (tmp_path / "y").exists()  # refused before anything was created
     err = capsys.readouterr().err
-    assert "no such folder" in err and "bogus" in err and "Traceback" not in err
+    assert "no such folder" in err and "bogus" in err and "--simulate 'sometimes'" in err and "Traceback" not in err
 
 
 @pytest.mark.slow

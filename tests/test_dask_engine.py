@@ -97,6 +97,36 @@ def test_user_matcher_options_reach_the_workers(scene5, tmp_path):
     _same(match_pair_task(store, driver, *PAIRS6[1]), D.match_pair_on_worker(spec))
 
 
+def test_first_pass_matcher_reaches_the_workers(scene5, tmp_path):
+    """`--simulate needed`'s first pass (originals only) on a Dask worker: the spec carries its
+    extra overrides, so the worker builds the driver's first-pass matcher (same identity, same
+    pair cache key) and returns the driver's result."""
+    from recon.config import MatchConfig
+    from recon.core.stages.match import (
+        first_pass_overrides,
+        make_matcher,
+        match_pair_task,
+        matcher_identity,
+        matcher_overrides,
+    )
+
+    scene, _, _ = scene5
+    cfg = MatchConfig(method="extra-affine", engine="dask", simulate="needed")
+    extra = first_pass_overrides(cfg)
+    ov = tuple(sorted({**matcher_overrides(cfg, 3, inner_workers=1), **extra}.items()))
+    driver = make_matcher(cfg, 3, inner_workers=1, extra=extra)
+    assert not driver.cfg.simulate
+    assert matcher_identity(D._matcher("extra-affine", ov)) == matcher_identity(driver)
+    assert matcher_identity(driver) != matcher_identity(make_matcher(cfg, 3, inner_workers=1))
+    spec = D.pair_task_specs(scene, PAIRS6[1:2], "extra-affine", 3, 1600, tmp_path / "cache", ov)[0]
+    store = FeatureStore()
+    for im in scene.images[:3]:
+        store.add_image(im.name, D.load_working_gray(im.path, 1600))
+    here, there = match_pair_task(store, driver, *PAIRS6[1]), D.match_pair_on_worker(spec)
+    _same(here, there)
+    assert there.path in ("originals", "deferred") and there.coarse_scores == []
+
+
 def _opencv_threads() -> int:
     import cv2
 

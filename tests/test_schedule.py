@@ -139,6 +139,9 @@ def test_recon_run_simulates_only_the_pairs_the_scene_needs_and_resumes_from_bot
     assert rep.pairs_simulated == sum(p in ("targeted", "full") for p in paths)
     for p in data["pairs"]:  # a pair is simulated exactly when the schedule said so
         assert ("-> simulated" in p["path_reason"]) == (p["path"] not in ("originals", "deferred")), p
+    # a pair left weak (view_00 / view_04: 10 first-pass matches) reaches COLMAP without matches
+    junk = [p for p in data["pairs"] if p["path"] == "deferred"]
+    assert junk and all(p["raw_matches"] == 0 and "left unmatched" in p["reason"] for p in junk)
     again = run_scene(corner_scene, cfg)  # resumed: both passes come from the pair cache
     assert again.pairs_cached == len(paths) and again.pairs_computed == 0
     assert again.num_points3D == rep.num_points3D

@@ -121,6 +121,18 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
             "fine__original_contrast": float(cfg.first_pass_contrast)}
 
 
+def without_matches(r: PairResult, reason: str) -> PairResult:
+    """`r` with no matches (its diagnostics kept): under `simulate = "needed"` a pair that is not
+    simulated and whose first pass verified fewer matches than COLMAP's verification accepts
+    (`verify.min_num_inliers`). Its raw ratio matches are nearly all wrong (the images barely or
+    do not overlap), and COLMAP's RANSAC would spend up to 20000 trials per model on each such
+    pair to reject it: 86 of castle_P30's 232 s went to verification before (docs/decisions.md)."""
+    return PairResult.empty(r.method, reason, reference=r.reference, reference_reason=r.reference_reason,
+                            f0=r.f0, f1=r.f1, best_views=r.best_views, coarse_scores=r.coarse_scores,
+                            escalation=r.escalation, timings=r.timings, image_sizes=r.image_sizes,
+                            path=r.path, path_reason=r.path_reason, verified=r.verified)
+
+
 def _replace_path(obj: Any, path: str, value: Any) -> Any:
     head, _, rest = path.partition(".")
     return dataclasses.replace(obj, **{head: _replace_path(getattr(obj, head), rest, value) if rest else value})
@@ -247,9 +259,13 @@ class Match:
         log.info("simulate=needed: %d of %d pairs solved by their originals (>= %d matches), %d weak pairs "
                  "simulated, %d left", n - first - len(choices), n - first, cfg.simulate_strong_inliers, len(todo),
                  len(choices) - len(todo))
+        floor = run.cfg.verify.min_num_inliers
         for c in choices:
             r = results[c.index]
             r.path_reason = f"{r.path_reason}; {c.reason}" if r.path_reason else c.reason
+            if not c.simulate and 0 <= r.verified < floor:
+                results[c.index] = without_matches(r, f"first pass verified {r.verified} matches (< verify.min_num_inliers "
+                                                      f"{floor}) and the pair is not simulated: left unmatched")
         simulate = set(todo)
         for i in range(first, n):
             if i not in simulate:
