@@ -146,8 +146,10 @@ class MatchConfig:
     simulate_strong_inliers: int = 100
     """`simulate = needed`: a pair whose originals verify at least this many matches is strong."""
 
-    simulate_min_partners: int = 3
-    """`simulate = needed`: a weak pair is simulated when one of its images has fewer strong partners."""
+    simulate_min_partners: int = 2
+    """`simulate = needed`: a weak pair is simulated when one of its images has fewer strong partners
+    (2: two strong pairs put each image in a triangle of views; 3 cost a third more time on the
+    difficulty curve's narrow steps for a larger rotation error, docs/decisions.md)."""
 
     first_pass_contrast: float = 0.02
     """`simulate = needed`: OpenCV SIFT's contrast threshold on the originals in the first pass

@@ -18,7 +18,7 @@ from recon.core.schedule import ScheduleConfig, components, pairs_to_simulate
 
 def _choices(names, weighted):
     pairs = [p for p, _ in weighted]
-    out = pairs_to_simulate(names, pairs, [n for _, n in weighted], ScheduleConfig())
+    out = pairs_to_simulate(names, pairs, [n for _, n in weighted], ScheduleConfig(min_partners=3))
     return {pairs[c.index]: c for c in out}
 
 
@@ -72,8 +72,9 @@ def test_an_all_weak_scene_simulates_every_pair_of_a_small_capture_and_a_linear_
     assert all(c.simulate for c in pairs_to_simulate(small, pairs, [0] * len(pairs), ScheduleConfig()))
     big = [f"v{k:02d}" for k in range(40)]
     pairs = list(itertools.combinations(big, 2))
-    n = sum(c.simulate for c in pairs_to_simulate(big, pairs, [5] * len(pairs), ScheduleConfig()))
-    assert n <= 3 * 3 * len(big) < len(pairs)
+    cfg = ScheduleConfig()
+    n = sum(c.simulate for c in pairs_to_simulate(big, pairs, [5] * len(pairs), cfg))
+    assert n <= 3 * cfg.min_partners * len(big) < len(pairs)
 
 
 # --- the matcher's first pass ---------------------------------------------------------------------

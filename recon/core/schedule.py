@@ -31,7 +31,7 @@ class ScheduleConfig:
 
     strong_inliers: int = 100
     """A pair whose first pass verified at least this many matches is strong (a graph edge)."""
-    min_partners: int = 3
+    min_partners: int = 2
     """A weak pair is simulated when one of its images has fewer strong partners than this (and
     it is among that image's 2 x (this - partners) most promising weak pairs); also the number of
     pairs simulated out of each part of the strong graph."""
