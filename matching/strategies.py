@@ -17,6 +17,7 @@ state so far call for it, `run(...)` does it.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Protocol
 
 import numpy as np
@@ -46,13 +47,16 @@ def fine_attempt(ctx: MatchContext, ref: int, top_k: int, label: str) -> Attempt
     return Attempt(label=label, reference=ref, fine=fm, views=views, coarse=scores, verified=n_verified)
 
 
-def originals_attempt(ctx: MatchContext, ref: int) -> Attempt:
+def originals_attempt(ctx: MatchContext, ref: int, verified_only: bool = False) -> Attempt:
     """The adaptive `originals` path (`matching.adaptive`): the unwarped originals' SIFT, image
-    `ref` as the reference, no coarse search and no simulated view."""
+    `ref` as the reference, no coarse search and no simulated view; with `verified_only` the
+    attempt keeps only the matches its verification accepted."""
     cfg = ctx.cfg
     views = [ViewParams(1.0, 0.0, 1.0)]
     fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.fine, ctx.pool, cfg.seed)
-    n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
+    n_verified, mask = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
+    if verified_only and len(mask) == len(fm.matches):
+        fm = dataclasses.replace(fm, matches=fm.matches[mask], distances=fm.distances[mask])
     return Attempt(label="", reference=ref, fine=fm, views=views, coarse=[], verified=n_verified)
 
 
