@@ -272,9 +272,9 @@ class Match:
                 run.observer.on_pair(i, *run.data.pairs[i], results[i], cached[i])
         if todo:
             simulated = Match._match_indices(run, matcher, pair_dir, todo, None, emit=True)
-            for i, (r, c) in simulated.items():
+            for i, (r, from_cache) in simulated.items():
                 r.path_reason = f"{results[i].path_reason}; {r.path_reason}" if r.path_reason else results[i].path_reason
-                results[i], cached[i] = r, c and cached[i]
+                results[i], cached[i] = r, from_cache and cached[i]
         return [results[i] for i in range(first, n)], [cached[i] for i in range(first, n)]
 
     @staticmethod
