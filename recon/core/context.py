@@ -91,9 +91,10 @@ class Run:
         log.warning(message)
         self.observer.on_warning(message)
 
-    def bar(self, total: int | None) -> Callable[..., None]:
-        """A progress bar for the current stage: `advance(n=1)`, `advance(done=True)`."""
-        return self.progress.task(self.stage, total)
+    def bar(self, total: int | None, part: str = "") -> Callable[..., None]:
+        """A progress bar for the current stage (`part` names a part of it, e.g. a pass):
+        `advance(n=1)`, `advance(done=True)`."""
+        return self.progress.task(f"{self.stage} ({part})" if part else self.stage, total)
 
     @property
     def executor(self) -> Executor:

@@ -247,7 +247,7 @@ class Match:
         cheap = make_matcher(cfg, run.cfg.seed, inner_workers=1 if len(run.data.pairs) - first >= run.cfg.num_workers
                              else 0, num_images=len(run.data.scene.images), extra=extra)
         n = len(run.data.pairs)
-        done = Match._match_indices(run, cheap, pair_dir, list(range(first, n)), extra, emit=False)
+        done = Match._match_indices(run, cheap, pair_dir, list(range(first, n)), extra, emit=False, part="originals")
         results = {i: r for i, (r, _) in done.items()}
         cached = {i: c for i, (_, c) in done.items()}
         earlier = list(run.data.results[:first]) if first else []  # expansion: the earlier rounds count too
@@ -271,7 +271,7 @@ class Match:
             if i not in simulate:
                 run.observer.on_pair(i, *run.data.pairs[i], results[i], cached[i])
         if todo:
-            simulated = Match._match_indices(run, matcher, pair_dir, todo, None, emit=True)
+            simulated = Match._match_indices(run, matcher, pair_dir, todo, None, emit=True, part="simulated views")
             for i, (r, from_cache) in simulated.items():
                 r.path_reason = f"{results[i].path_reason}; {r.path_reason}" if r.path_reason else results[i].path_reason
                 results[i], cached[i] = r, from_cache and cached[i]
@@ -288,12 +288,13 @@ class Match:
 
     @staticmethod
     def _match_indices(run: Run, matcher: PairMatcher, pair_dir: Path, indices: list[int],
-                       extra: dict[str, Any] | None, emit: bool) -> dict[int, tuple[PairResult, bool]]:
+                       extra: dict[str, Any] | None, emit: bool, part: str = "") -> dict[int, tuple[PairResult, bool]]:
         """The pairs `run.data.pairs[i]` for `i` in `indices`, from the cache or computed on the
         executor: {index: (result, cached)}. `extra` = the matcher's overrides beyond
-        `matcher_overrides` (for Dask workers); `emit` = report each pair to the observers."""
+        `matcher_overrides` (for Dask workers); `emit` = report each pair to the observers;
+        `part` names the progress bar's part of the stage."""
         pairs = run.data.pairs
-        advance = run.bar(len(indices))
+        advance = run.bar(len(indices), part)
         images = {im.name: im for im in run.data.scene.images}
         mid = matcher_identity(matcher)
         results: list[PairResult | None] = [None] * len(pairs)
