@@ -150,8 +150,8 @@ def originals_only(ctx: MatchContext, decision: ReferenceDecision) -> tuple[Atte
     accepted kept (COLMAP then verifies nearly clean matches in a few RANSAC trials instead of up
     to 20000 per model: on castle_P30 verification took 75 of the run's 210 s with the raw ones):
     (the attempt, "originals" when it verifies `escalation.min_inliers` matches, else
-    "deferred", why). The identity view is
-    symmetric: image 0 is called the reference unless a decision was made."""
+    "deferred", why). The identity view is symmetric: image 0 is matched as the reference
+    unless a decision was made, and the result names no reference."""
     ref = 0 if decision.reference is None else decision.reference
     ctx.reference = ref
     with ctx.timed("originals"):
