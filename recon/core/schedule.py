@@ -16,7 +16,9 @@ originals leave a pair weak *and* the scene needs that pair. The strong pairs (a
 A weak pair between two well-connected images of one component is left with its first-pass
 matches: the scene registers and triangulates through its strong pairs, and simulating it costs
 1-3 s per pair (most such pairs of an exhaustive selection do not overlap at all). A scene of
-only extreme pairs (no strong graph) simulates every pair, as `simulate = "all"` does.
+only extreme pairs (no strong graph) simulates every pair when it is small (each image's
+2 x `min_partners` most promising pairs: all of a 4-view scene's), and a few per image when it
+is large.
 """
 
 from __future__ import annotations
@@ -71,7 +73,7 @@ def pairs_to_simulate(names: Sequence[str], pairs: Sequence[tuple[str, str]], ve
     """The decision for every weak pair (fewer than `cfg.strong_inliers` first-pass `verified`
     matches) from index `first` on, in pair order (module doc); strong pairs are not listed. The
     pairs before `first` (matched earlier, e.g. before a match-graph expansion round) count in
-    the strong graph and in the quotas but are not decided again.
+    the strong graph but are not decided again.
 
     Bounded so that the simulated pairs grow linearly with the images (at most 3 x
     `min_partners` per image): an image short of `min_partners` strong partners by d gets its 2d

@@ -11,6 +11,12 @@ has none and always runs. Results are collected in pair order, never completion 
 fixed seed gives the same output whatever the scheduling. One failing pair is a warning and an
 empty result, never the end of the run.
 
+With `--simulate needed` (`match.simulate`) the pairs run in two passes: every pair's
+originals first (`first_pass_overrides`: nothing simulated), then the default matcher on the
+weak pairs the strong-pair graph needs (`recon.core.schedule`); each pass has its own matcher
+identity and so its own pair cache entries, and a weak pair left out keeps its first-pass
+matches, or none below `verify.min_num_inliers` (`without_matches`).
+
 With `--pairs retrieval:K+expand:E` the stage then runs match-graph expansion rounds
 (`recon.core.expansion`): each round appends the pairs the matched ones say overlap to
 `pairs` (after the proposed ones, in a fixed order) and matches them the same way, so a resumed
