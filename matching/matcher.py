@@ -119,11 +119,7 @@ class ExtraAffineMatcher:
             return result
         why = result.reason or (f"only {result.num_inliers} verified matches (< {n_min}): "
                                 "the images probably do not overlap")
-        return PairResult.empty(self.name, why, reference=result.reference,
-                                reference_reason=result.reference_reason, f0=result.f0, f1=result.f1,
-                                best_views=result.best_views, coarse_scores=result.coarse_scores,
-                                escalation=result.escalation, timings=result.timings, image_sizes=result.image_sizes,
-                                path=result.path, path_reason=result.path_reason, verified=result.verified)
+        return result.without_matches(why)
 
     def close(self) -> None:
         if self._pool_obj is not None:

@@ -118,6 +118,14 @@ class PairResult:
             image_sizes=sizes,
         )
 
+    def without_matches(self, reason: str) -> PairResult:
+        """This result with no matches and `reason`, its diagnostics (reference, views, coarse
+        scores, path, timings, verified count) kept."""
+        return PairResult.empty(self.method, reason, reference=self.reference, reference_reason=self.reference_reason,
+                                f0=self.f0, f1=self.f1, best_views=self.best_views, coarse_scores=self.coarse_scores,
+                                escalation=self.escalation, timings=self.timings, image_sizes=self.image_sizes,
+                                path=self.path, path_reason=self.path_reason, verified=self.verified)
+
     @staticmethod
     def empty(method: str, reason: str, **kw) -> PairResult:
         z2 = np.zeros((0, 2), np.float32)

@@ -15,7 +15,7 @@ With `--simulate needed` (`match.simulate`) the pairs run in two passes: every p
 originals first (`first_pass_overrides`: nothing simulated), then the default matcher on the
 weak pairs the strong-pair graph needs (`recon.core.schedule`); each pass has its own matcher
 identity and so its own pair cache entries, and a weak pair left out keeps its first-pass
-matches, or none below `verify.min_num_inliers` (`without_matches`).
+matches, or none below `verify.min_num_inliers` (`PairResult.without_matches`).
 
 With `--pairs retrieval:K+expand:E` the stage then runs match-graph expansion rounds
 (`recon.core.expansion`): each round appends the pairs the matched ones say overlap to
@@ -125,18 +125,6 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
     of 0.234°, total time 48 instead of 66-72 s; docs/decisions.md)."""
     return {"simulate": False, "adaptive": False, "guided_epipolar": False, "fine__original_detector": "sift",
             "fine__original_contrast": float(cfg.first_pass_contrast)}
-
-
-def without_matches(r: PairResult, reason: str) -> PairResult:
-    """`r` with no matches (its diagnostics kept): under `simulate = "needed"` a pair that is not
-    simulated and whose first pass verified fewer matches than COLMAP's verification accepts
-    (`verify.min_num_inliers`). Its raw ratio matches are nearly all wrong (the images barely or
-    do not overlap), and COLMAP's RANSAC would spend up to 20000 trials per model on each such
-    pair to reject it: 86 of castle_P30's 232 s went to verification before (docs/decisions.md)."""
-    return PairResult.empty(r.method, reason, reference=r.reference, reference_reason=r.reference_reason,
-                            f0=r.f0, f1=r.f1, best_views=r.best_views, coarse_scores=r.coarse_scores,
-                            escalation=r.escalation, timings=r.timings, image_sizes=r.image_sizes,
-                            path=r.path, path_reason=r.path_reason, verified=r.verified)
 
 
 def _replace_path(obj: Any, path: str, value: Any) -> Any:
@@ -270,7 +258,9 @@ class Match:
             r = results[c.index]
             r.path_reason = f"{r.path_reason}; {c.reason}" if r.path_reason else c.reason
             if not c.simulate and 0 <= r.verified < floor:
-                results[c.index] = without_matches(r, f"first pass verified {r.verified} matches (< verify.min_num_inliers "
+                # nearly all wrong ratio matches: COLMAP's RANSAC would spend up to 20000 trials per
+                # model rejecting each such pair (86 of castle_P30's 232 s, docs/decisions.md)
+                results[c.index] = r.without_matches(f"first pass verified {r.verified} matches (< verify.min_num_inliers "
                                                       f"{floor}) and the pair is not simulated: left unmatched")
         simulate = set(todo)
         for i in range(first, n):
