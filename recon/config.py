@@ -116,6 +116,9 @@ class PairsConfig:
 SIMULATE = ("all", "needed")
 """`match.simulate`'s values (`MatchConfig.simulate`)."""
 
+SIMULATE_BRIDGES = ("cheap", "full")
+"""`match.simulate_bridges`'s values (`MatchConfig.simulate_bridges`)."""
+
 
 @dataclass
 class MatchConfig:
@@ -151,6 +154,17 @@ class MatchConfig:
     (2: two strong pairs put each image in a triangle of views; 3 cost a third more time on the
     difficulty curve's narrow steps for a larger rotation error, docs/decisions.md)."""
 
+    simulate_bridges: str = field(default="cheap", metadata={"choices": "recon.config:SIMULATE_BRIDGES"})
+    """`simulate = needed`: the matcher of a weak pair simulated only as a bridge between parts of
+    the strong pair graph (both images have enough strong partners). cheap = the full matcher's
+    simulated views with the first pass's OpenCV SIFT on the originals and no epipolar round: a
+    bridge only joins parts that their strong pairs already reconstruct; the covariant extraction
+    was most of such a pair's time (sacre_coeur: 2.07x stock's total time with full bridges, 1.02-1.39x
+    in three runs with cheap ones), and with the originals' fewer matches the epipolar round followed a wrong F
+    (36-40 matches > 4 px off the true epipolar lines per bridge of the rendered facade-groups);
+    full = the second pass's default matcher, as for an image short of strong partners
+    (docs/decisions.md, "Cheap bridges")."""
+
     first_pass_contrast: float = 0.02
     """`simulate = needed`: OpenCV SIFT's contrast threshold on the originals in the first pass
     (0.02: about the keypoints of COLMAP's default extraction, 4x those of 0.04 at 1600 px)."""
@@ -169,6 +183,8 @@ class MatchConfig:
         check_engine(self.engine)
         if self.simulate not in SIMULATE:
             raise UserError(f"--simulate {self.simulate!r}: choose all or needed")
+        if self.simulate_bridges not in SIMULATE_BRIDGES:
+            raise UserError(f"match.simulate_bridges {self.simulate_bridges!r}: choose cheap or full")
         for name in ("simulate_strong_inliers", "simulate_min_partners"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:

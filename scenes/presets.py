@@ -113,6 +113,18 @@ def facade_sweep(num_views: int, max_azimuth_deg: float, name: str | None = None
         cameras=CameraArc(az, distance=11.0, elevation_deg=12.0, look_at=(0.0, -0.5, 2.0)))
 
 
+def facade_groups(name: str = "facade-groups") -> ScenePreset:
+    """The stepped facade photographed from two spots: three views 6 deg apart at -40 deg and three
+    at +30 deg about its normal (58-82 deg between the groups). The common shape of a casual
+    capture: easy pairs within each group, only wide-baseline pairs joining them (the bridges of
+    `recon run --simulate needed`)."""
+    az = tuple(90.0 + a for a in (-80.0, -74.0, -68.0, 26.0, 32.0, 38.0))
+    return ScenePreset(
+        name=name, description="stepped facade, two groups of 3 views 6 deg apart, 58-82 deg between the groups",
+        planes=facade_planes(),
+        cameras=CameraArc(az, distance=11.0, elevation_deg=12.0, look_at=(0.0, -0.5, 2.0)))
+
+
 def building_planes(width: float = 8.0, depth: float = 6.0, height: float = 5.0,
                     ground: float = 16.0) -> tuple[Plane, ...]:
     """A free-standing block building centred on the origin: four walls facing outwards
@@ -153,6 +165,7 @@ PRESETS: dict[str, ScenePreset] = {
         corner_preset("corner-wide", 4, 2.0, 88.0, "building corner, 4 views 29 deg apart, viewing angles to ~80 deg"),
         facade_sweep(5, 75.0, "facade-wide"),
         facade_sweep(4, 80.0, "facade-extreme"),
+        facade_groups(),
     )
 }
 DEFAULT_PRESET = "corner"

@@ -39,6 +39,7 @@ def test_weak_pairs_between_well_connected_images_are_not_simulated():
     # E has no strong partner: its 2 x 3 most promising weak pairs (here all 5) are simulated
     assert all(ch[(x, "E")].simulate for x in "ABCDF")
     assert "E has 0 strong partners (< 3)" in ch[("A", "E")].reason
+    assert not any(c.bridge for c in ch.values())  # E's pairs carry its registration: the full matcher
 
 
 def test_a_short_image_gets_only_its_most_promising_weak_pairs():
@@ -63,7 +64,20 @@ def test_two_strong_clusters_get_a_few_bridges_not_every_cross_pair():
     chosen = sorted((p for p, c in ch.items() if c.simulate), key=lambda p: -dict(cross)[p])
     best3 = sorted(cross, key=lambda w: -w[1])[:3]
     assert chosen == [p for p, _ in best3]
-    assert all("different parts" in ch[p].reason for p in chosen)
+    assert all("different parts" in ch[p].reason and ch[p].bridge for p in chosen)
+
+
+def test_a_cross_part_pair_of_an_image_short_of_partners_is_not_only_a_bridge():
+    names = list("ABCDE")
+    strong = [(p, 900) for p in itertools.combinations("ABC", 2)] + [(("D", "E"), 900)]
+    weak = [(("C", "D"), 60), (("A", "E"), 50)]  # D and E have one strong partner each
+    out = pairs_to_simulate(names, [p for p, _ in strong + weak], [n for _, n in strong + weak], ScheduleConfig())
+    ch = {(strong + weak)[c.index][0]: c for c in out}
+    assert ch[("C", "D")].simulate and ch[("A", "E")].simulate
+    assert not ch[("C", "D")].bridge and not ch[("A", "E")].bridge  # their registration rests on them
+    one = ScheduleConfig(min_partners=1)  # now every image has enough partners: the same pairs join two parts
+    out = pairs_to_simulate(names, [p for p, _ in strong + weak], [n for _, n in strong + weak], one)
+    assert [(strong + weak)[c.index][0] for c in out if c.simulate and c.bridge] == [("C", "D")]
 
 
 def test_an_all_weak_scene_simulates_every_pair_of_a_small_capture_and_a_linear_number_of_a_large_one():
@@ -147,3 +161,37 @@ def test_recon_run_simulates_only_the_pairs_the_scene_needs_and_resumes_from_bot
     assert again.pairs_cached == len(paths) and again.pairs_computed == 0
     assert again.num_points3D == rep.num_points3D
     assert np.isclose(again.mean_reprojection_error, rep.mean_reprojection_error)
+
+
+@pytest.mark.slow
+def test_bridges_between_two_groups_of_views_get_the_cheap_matcher_and_join_the_scene(rendered_scene, tmp_path):
+    import pycolmap
+
+    from recon.config import RunConfig
+    from recon.core.pipeline import run_scene
+    from recon.eval.compare import load_gt
+    from recon.eval.evaluate import evaluate_model
+
+    # two groups of three views 6 deg apart, 94-118 deg between the groups: at 640 x 480 the
+    # originals join the groups by no strong pair, and every image has two strong partners
+    scene = rendered_scene("facade-groups", (640, 480))
+    reports = {}
+    for bridges in ("cheap", "full"):
+        out = tmp_path / bridges
+        rep = run_scene(scene, RunConfig.from_options(out=out, progress=False, simulate="needed",
+                                                      **{"match.simulate_bridges": bridges}))
+        assert rep.ok and rep.registered_images == 6 and rep.num_models == 1
+        rows = json.loads((out / "report.json").read_text())["pairs"]
+        groups = [{"view_00.png", "view_01.png", "view_02.png"}, {"view_03.png", "view_04.png", "view_05.png"}]
+        simulated = [p for p in rows if p["path"] == "full"]
+        assert simulated and all(not any({p["image0"], p["image1"]} <= g for g in groups) for p in simulated)
+        assert all("different parts of the strong pair graph" in p["path_reason"] for p in simulated)
+        assert all(("(bridge)" in p["path_reason"]) == (bridges == "cheap") for p in simulated)
+        gt, _, _ = load_gt(scene)
+        err = evaluate_model(pycolmap.Reconstruction(str(out / "sparse" / "0")), gt)["rel_rot_err_deg_median"]
+        reports[bridges] = (rep, simulated, err)
+    cheap, full = reports["cheap"], reports["full"]
+    assert [p["image0"] + p["image1"] for p in cheap[1]] == [p["image0"] + p["image1"] for p in full[1]]
+    # the cheap bridges: no covariant extraction, no epipolar round; the groups still join accurately
+    assert sum(p["seconds"] for p in cheap[1]) < sum(p["seconds"] for p in full[1])
+    assert cheap[2] < 0.5, cheap[2]

@@ -13,9 +13,13 @@ originals leave a pair weak *and* the scene needs that pair. The strong pairs (a
   only bridge between two parts of the scene), and it is among the most promising pairs out of
   one of them.
 
-A weak pair between two well-connected images of one component is left with its first-pass
-matches: the scene registers and triangulates through its strong pairs, and simulating it costs
-1-3 s per pair (most such pairs of an exhaustive selection do not overlap at all). A scene of
+The first kind carries an image's registration and gets the full matcher; the second, when both
+its images have `min_partners` strong partners, only joins parts that their strong pairs already
+reconstruct, and is marked `bridge` so that the match stage can give it a cheaper matcher
+(`MatchConfig.simulate_bridges`). A weak pair between two well-connected images of one
+component is left with its first-pass matches: the scene registers and triangulates through its
+strong pairs, and simulating it costs 1-3 s per pair (most such pairs of an exhaustive selection
+do not overlap at all). A scene of
 only extreme pairs (no strong graph) simulates every pair when it is small (each image's
 2 x `min_partners` most promising pairs: all of a 4-view scene's), and a few per image when it
 is large.
@@ -47,6 +51,10 @@ class SimulationChoice:
     """The pair's index in the stage's pair list."""
     simulate: bool
     reason: str
+    bridge: bool = False
+    """Simulated only as a bridge between parts of the strong graph, both images having
+    `min_partners` strong partners: the match stage may give it a cheaper matcher
+    (`MatchConfig.simulate_bridges`)."""
 
 
 def components(names: Sequence[str], edges: Sequence[tuple[str, str]]) -> dict[str, int]:
@@ -99,6 +107,7 @@ def pairs_to_simulate(names: Sequence[str], pairs: Sequence[tuple[str, str]], ve
             why = ", ".join(f"{x} has {degree[x]}" for x in short)
             reasons[i] = f"{why} strong partners (< {cfg.min_partners})"
     bridges = dict.fromkeys(comp.values(), 0)
+    bridged: set[int] = set()
     for i in weak:  # each part of the strong graph: its most promising pairs to other parts
         a, b = pairs[i]
         if comp[a] == comp[b] or i in reasons:
@@ -107,11 +116,13 @@ def pairs_to_simulate(names: Sequence[str], pairs: Sequence[tuple[str, str]], ve
             bridges[comp[a]] += 1
             bridges[comp[b]] += 1
             reasons[i] = "the images are in different parts of the strong pair graph"
+            if min(degree[a], degree[b]) >= cfg.min_partners:  # an image short of partners: not only a bridge
+                bridged.add(i)
     out = []
     for i in sorted(weak):
         head = f"{verified[i]} first-pass matches (< {cfg.strong_inliers})"
         if i in reasons:
-            out.append(SimulationChoice(i, True, f"{head}; {reasons[i]} -> simulated"))
+            out.append(SimulationChoice(i, True, f"{head}; {reasons[i]} -> simulated", bridge=i in bridged))
         else:
             out.append(SimulationChoice(i, False, f"{head}; its images have enough strong partners or better "
                                                    "candidates -> not simulated"))

@@ -13,7 +13,8 @@ empty result, never the end of the run.
 
 With `--simulate needed` (`match.simulate`) the pairs run in two passes: every pair's
 originals first (`first_pass_overrides`: nothing simulated), then the default matcher on the
-weak pairs the strong-pair graph needs (`recon.core.schedule`); each pass has its own matcher
+weak pairs the strong-pair graph needs (`recon.core.schedule`; a pair needed only as a bridge
+between parts of that graph with the first pass's originals, `bridge_overrides`); each pass has its own matcher
 identity and so its own pair cache entries, and a weak pair left out keeps its first-pass
 matches, or none below `verify.min_num_inliers` (`PairResult.without_matches`).
 
@@ -125,6 +126,19 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
     of 0.234°, total time 48 instead of 66-72 s; docs/decisions.md)."""
     return {"simulate": False, "adaptive": False, "guided_epipolar": False, "fine__original_detector": "sift",
             "fine__original_contrast": float(cfg.first_pass_contrast)}
+
+
+def bridge_overrides(cfg: MatchConfig) -> dict[str, Any]:
+    """The second pass's matcher for the pairs simulated only as bridges between parts of the
+    strong pair graph, on top of the default one: with `simulate_bridges = "cheap"` the first
+    pass's OpenCV SIFT on the originals instead of COLMAP's covariant SIFT, and no epipolar round
+    (with the cheap originals' fewer matches its F can be wrong, and the round then adds matches
+    along the wrong lines that COLMAP's verification keeps); the views and the escalation stay.
+    Nothing with "full" (`MatchConfig.simulate_bridges`)."""
+    if cfg.simulate_bridges == "full":
+        return {}
+    return {"fine__original_detector": "sift", "fine__original_contrast": float(cfg.first_pass_contrast),
+            "guided_epipolar": False}
 
 
 def _replace_path(obj: Any, path: str, value: Any) -> Any:
@@ -253,10 +267,13 @@ class Match:
         log.info("simulate=needed: %d of %d pairs solved by their originals (>= %d matches), %d weak pairs "
                  "simulated, %d left", n - first - len(choices), n - first, cfg.simulate_strong_inliers, len(todo),
                  len(choices) - len(todo))
+        bridge_extra = bridge_overrides(cfg)
+        bridges = {c.index for c in choices if c.simulate and c.bridge} if bridge_extra else set()
         floor = run.cfg.verify.min_num_inliers
         for c in choices:
             r = results[c.index]
-            r.path_reason = f"{r.path_reason}; {c.reason}" if r.path_reason else c.reason
+            why = f"{c.reason} with the first pass's originals (bridge)" if c.index in bridges else c.reason
+            r.path_reason = f"{r.path_reason}; {why}" if r.path_reason else why
             if not c.simulate and 0 <= r.verified < floor:
                 # nearly all wrong ratio matches: COLMAP's RANSAC would spend up to 20000 trials per
                 # model rejecting each such pair (86 of castle_P30's 232 s, docs/decisions.md)
@@ -266,8 +283,16 @@ class Match:
         for i in range(first, n):
             if i not in simulate:
                 run.observer.on_pair(i, *run.data.pairs[i], results[i], cached[i])
-        if todo:
-            simulated = Match._match_indices(run, matcher, pair_dir, todo, None, emit=True, part="simulated views")
+        groups: list[tuple[PairMatcher, dict[str, Any] | None, list[int], str]] = [
+            (matcher, None, [i for i in todo if i not in bridges], "simulated views")]
+        if bridges:
+            bridge_matcher = make_matcher(cfg, run.cfg.seed, inner_workers=1 if len(bridges) >= run.cfg.num_workers
+                                          else 0, num_images=len(run.data.scene.images), extra=bridge_extra)
+            groups.append((bridge_matcher, bridge_extra, sorted(bridges), "bridges (simulated views)"))
+        for group_matcher, group_extra, indices, part in groups:
+            if not indices:
+                continue
+            simulated = Match._match_indices(run, group_matcher, pair_dir, indices, group_extra, emit=True, part=part)
             for i, (r, from_cache) in simulated.items():
                 r.path_reason = f"{results[i].path_reason}; {r.path_reason}" if r.path_reason else results[i].path_reason
                 results[i], cached[i] = r, from_cache and cached[i]
