@@ -53,8 +53,9 @@ DESCRIPTOR_SCALE = 512.0
 """Unit-norm descriptors times this = OpenCV SIFT's L2 scale."""
 
 
-def extraction_options(max_features: int = 0, pooling: bool = True, dsp_scales: int = 10):  # -> pycolmap.FeatureExtractionOptions
-    """COLMAP's CPU SIFT options: affine shape and domain-size pooling (unless not `pooling`) on,
+def extraction_options(max_features: int = 0, pooling: bool = True, dsp_scales: int = 10,
+                       affine: bool = True):  # -> pycolmap.FeatureExtractionOptions
+    """COLMAP's CPU SIFT options: affine shape (unless not `affine`) and domain-size pooling (unless not `pooling`) on,
     L1-root descriptors, at most `max_features` (0 = unlimited), no downscaling (callers pass the
     working-resolution image); pooling over `dsp_scales` support sizes (COLMAP's default 10)."""
     import cv2  # noqa: F401  (cv2 before pycolmap: see the module doc)
@@ -65,7 +66,7 @@ def extraction_options(max_features: int = 0, pooling: bool = True, dsp_scales: 
     o.num_threads = 1
     o.max_image_size = UNLIMITED  # never downscale here
     o.sift.max_num_features = int(max_features) if max_features else UNLIMITED
-    o.sift.estimate_affine_shape = True
+    o.sift.estimate_affine_shape = bool(affine)
     o.sift.domain_size_pooling = bool(pooling)
     o.sift.dsp_num_scales = int(dsp_scales)
     o.sift.normalization = pycolmap.Normalization.L1_ROOT
@@ -152,7 +153,7 @@ def extraction_processes(n: int) -> Iterator[None]:
 
 
 def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDArray[np.uint8] | None = None,
-                       pooling: bool = True, dsp_scales: int = 10) -> Frames:
+                       pooling: bool = True, dsp_scales: int = 10, affine: bool = True) -> Frames:
     """COLMAP's covariant SIFT of `img` (8-bit gray), in OpenCV's pixel convention (see the module
     doc): keypoints, sizes, angles and descriptors, which `matching.features.detect` wraps as
     `Features` (this module does not import it: `features` imports this one). `mask` (uint8,
@@ -170,22 +171,23 @@ def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDAr
     if pool is not None:
         try:
             with _signal_mask_kept():  # the first submit spawns the children
-                future = pool.submit(_extract, gray, max_features, mask, pooling, dsp_scales)
+                future = pool.submit(_extract, gray, max_features, mask, pooling, dsp_scales, affine)
             return future.result()
         except (BrokenProcessPool, RuntimeError, CancelledError):  # a dead child, or the block closing
             pass
     if me in _abandoned:
         raise CancelledError("covariant SIFT extraction abandoned: the run was interrupted")
     with _in_process:
-        return _extract(gray, max_features, mask, pooling, dsp_scales)
+        return _extract(gray, max_features, mask, pooling, dsp_scales, affine)
 
 
 def _extract(gray: NDArray[np.uint8], max_features: int, mask: NDArray[np.uint8] | None, pooling: bool,
-             dsp_scales: int) -> Frames:
+             dsp_scales: int, affine: bool = True) -> Frames:
     """`detect_colmap_sift`'s work, in whichever process runs it."""
     import pycolmap
 
-    extractor = pycolmap.FeatureExtractor.create(extraction_options(max_features, pooling, dsp_scales), pycolmap.Device.cpu)
+    extractor = pycolmap.FeatureExtractor.create(extraction_options(max_features, pooling, dsp_scales, affine),
+                                                 pycolmap.Device.cpu)
     kps, descs = extractor.extract_from_uint8_array(gray)
     frames = np.asarray(pycolmap.keypoints_to_matrix(kps), np.float32).reshape(-1, 4)  # x, y, scale, orientation
     # COLMAP stores unit-norm descriptors x 512 as uint8 (no component reaches 255 after L1-root);

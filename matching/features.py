@@ -14,7 +14,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-DetectorName = Literal["sift", "orb", "colmap-sift", "colmap-sift-affine"]
+DetectorName = Literal["sift", "orb", "colmap-sift", "colmap-sift-affine", "colmap-sift-plain"]
+COLMAP_DETECTORS = ("colmap-sift", "colmap-sift-affine", "colmap-sift-plain")
+"""The detectors computed by COLMAP (`matching.colmap_sift`), not OpenCV."""
 
 
 @dataclass(frozen=True)
@@ -24,8 +26,9 @@ class DetectorConfig:
     name: DetectorName = "sift"
     """"sift" (OpenCV, float descriptors, L2), "orb" (binary, Hamming), "colmap-sift" (COLMAP's SIFT
     with affine shape estimation and domain-size pooling, `matching.colmap_sift`: RootSIFT float
-    descriptors at OpenCV's L2 scale, comparable only with its own) or "colmap-sift-affine" (the
-    same without domain-size pooling: 40 % of its time)."""
+    descriptors at OpenCV's L2 scale, comparable only with its own), "colmap-sift-affine" (the
+    same without domain-size pooling: 40 % of its time) or "colmap-sift-plain" (neither: the
+    keypoints and descriptors of COLMAP's default extraction, 25 % of "colmap-sift"'s time)."""
     max_features: int = 0
     """Feature budget; 0 = unlimited (SIFT and colmap-sift; ORB then keeps 1000)."""
     root_sift: bool = False
@@ -109,9 +112,9 @@ def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     if cfg.name == "orb":
         # fastThreshold lowered from 20 so low-contrast simulated views still yield keypoints
         return cv2.ORB.create(nfeatures=cfg.max_features or 1000, fastThreshold=10)
-    if cfg.name in ("colmap-sift", "colmap-sift-affine"):
+    if cfg.name in COLMAP_DETECTORS:
         raise ValueError(f"{cfg.name} is not an OpenCV detector: call matching.features.detect")
-    raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift', 'orb', 'colmap-sift' or 'colmap-sift-affine'")
+    raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift', 'orb' or one of {', '.join(COLMAP_DETECTORS)}")
 
 
 _sift_gate = threading.BoundedSemaphore(1)
@@ -130,13 +133,14 @@ def set_sift_concurrency(n: int) -> None:
 
 def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] | None = None) -> Features:
     """Detect and describe `img` (8-bit gray). `mask` (uint8, nonzero = valid) limits detection."""
-    if cfg.name in ("colmap-sift", "colmap-sift-affine"):
+    if cfg.name in COLMAP_DETECTORS:
         from .colmap_sift import detect_colmap_sift
 
         # no SIFT gate: detect_colmap_sift runs one at a time in this process (pycolmap holds the
         # GIL), or side by side in child processes (`colmap_sift.extraction_processes`)
         kpts, sizes, angles, desc = detect_colmap_sift(img, cfg.max_features, mask,
-                                                       pooling=cfg.name == "colmap-sift", dsp_scales=cfg.dsp_scales)
+                                                       pooling=cfg.name == "colmap-sift", dsp_scales=cfg.dsp_scales,
+                                                       affine=cfg.name != "colmap-sift-plain")
         return Features(kpts, sizes, angles, desc) if len(kpts) else Features.empty(128, np.float32)
     det = make_detector(cfg)
     if cfg.name == "sift":

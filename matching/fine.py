@@ -34,7 +34,7 @@ from .types import CoarseScore, ViewParams
 from .viewfeatures import original_features, view_features
 from .views import Interp, capped_view
 
-OriginalDetector = Literal["sift", "colmap-sift", "colmap-sift-affine"]
+OriginalDetector = Literal["sift", "colmap-sift", "colmap-sift-affine", "colmap-sift-plain"]
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,8 @@ class FineConfig:
     shape estimation and domain-size pooling (`matching.colmap_sift`, what COLMAP's `high` preset
     extracts; RootSIFT on both sides, a few seconds per 800x600 image). The simulated views keep
     OpenCV's SIFT against the target's OpenCV SIFT (`TargetFeatures`); "colmap-sift-affine" = the
-    same without domain-size pooling (affine shape only, 40 % of the time at 1600 px)."""
+    same without domain-size pooling (affine shape only, 40 % of the time at 1600 px);
+    "colmap-sift-plain" = neither (COLMAP's default extraction, what stock `default` matches)."""
     original_contrast: float = 0.04
     """OpenCV SIFT's contrast threshold on the originals when `original_detector` = "sift"
     (0.04 = the views' detector, one feature set; 0.02 finds about 4x the keypoints on a

@@ -116,6 +116,9 @@ class PairsConfig:
 SIMULATE = ("all", "needed")
 """`match.simulate`'s values (`MatchConfig.simulate`)."""
 
+FIRST_PASS_DETECTORS = ("sift", "colmap-sift-plain", "colmap-sift-affine", "colmap-sift")
+"""`match.first_pass_detector`'s values (`MatchConfig.first_pass_detector`)."""
+
 SIMULATE_BRIDGES = ("cheap", "full")
 """`match.simulate_bridges`'s values (`MatchConfig.simulate_bridges`)."""
 
@@ -165,6 +168,12 @@ class MatchConfig:
     full = the second pass's default matcher, as for an image short of strong partners
     (docs/decisions.md, "Cheap bridges")."""
 
+    first_pass_detector: str = field(default="sift", metadata={"choices": "recon.config:FIRST_PASS_DETECTORS"})
+    """`simulate = needed`: the detector of the originals in the first pass (and of cheap
+    bridges): sift = OpenCV's SIFT at `first_pass_contrast`; colmap-sift-plain = COLMAP's default
+    extraction (what stock COLMAP matches); colmap-sift-affine / colmap-sift = with affine shape /
+    and domain-size pooling (the default matcher's originals)."""
+
     first_pass_contrast: float = 0.02
     """`simulate = needed`: OpenCV SIFT's contrast threshold on the originals in the first pass
     (0.02: about the keypoints of COLMAP's default extraction, 4x those of 0.04 at 1600 px)."""
@@ -183,6 +192,9 @@ class MatchConfig:
         check_engine(self.engine)
         if self.simulate not in SIMULATE:
             raise UserError(f"--simulate {self.simulate!r}: choose all or needed")
+        if self.first_pass_detector not in FIRST_PASS_DETECTORS:
+            raise UserError(f"match.first_pass_detector {self.first_pass_detector!r}: choose one of "
+                            f"{', '.join(FIRST_PASS_DETECTORS)}")
         if self.simulate_bridges not in SIMULATE_BRIDGES:
             raise UserError(f"match.simulate_bridges {self.simulate_bridges!r}: choose cheap or full")
         for name in ("simulate_strong_inliers", "simulate_min_partners"):

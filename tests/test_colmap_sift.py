@@ -110,7 +110,7 @@ def test_mask_limits_the_keypoints(blobs):
     assert np.all(f.kpts[:, 0] < 200.5)
 
 
-@pytest.mark.parametrize("detector", ["colmap-sift", "colmap-sift-affine"])
+@pytest.mark.parametrize("detector", ["colmap-sift", "colmap-sift-affine", "colmap-sift-plain"])
 def test_homography_pair_matches_land_on_the_truth(pair_store, detector):
     store, H = pair_store
     f0, f1 = (original_features(store, n, FineConfig(original_detector=detector).originals_detector)
@@ -229,6 +229,26 @@ def test_affine_variant_keeps_the_keypoints_and_drops_domain_size_pooling(blobs)
     np.testing.assert_array_equal(affine.sizes, pooled.sizes)
     assert not np.allclose(affine.descriptors, pooled.descriptors, atol=1.0)
     np.testing.assert_allclose(np.linalg.norm(affine.descriptors, axis=1), 512.0, rtol=1e-4)
+
+
+def test_plain_variant_is_colmaps_default_extraction(blobs):
+    """"colmap-sift-plain" is COLMAP's default extraction (no affine shape, no pooling): the
+    keypoints of pycolmap's own default options, upright ellipses of the same SIFT peaks, so
+    their positions differ from the affine-adapted ones only by the adaptation."""
+    import pycolmap
+
+    from matching import colmap_sift
+
+    img, _, pooled = blobs
+    plain = detect(img, DetectorConfig("colmap-sift-plain"))
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.use_gpu, opts.num_threads, opts.max_image_size = False, 1, 100000
+    opts.sift.max_num_features = colmap_sift.UNLIMITED
+    kps, _ = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu).extract_from_uint8_array(img)
+    ref = np.asarray(pycolmap.keypoints_to_matrix(kps), np.float32).reshape(-1, 4)[:, :2] - 0.5
+    assert len(plain) == len(ref) > 0
+    np.testing.assert_allclose(np.sort(plain.kpts, axis=0), np.sort(ref, axis=0), atol=1e-3)
+    assert len(plain) != len(pooled) or not np.array_equal(plain.kpts, pooled.kpts)
 
 
 def test_an_interrupted_block_abandons_its_extractions():

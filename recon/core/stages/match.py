@@ -124,8 +124,8 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
     matches, and the round took a third of the pass (on fountain_P11 without it: 15673 instead
     of 17647 points, reprojection error 0.396 instead of 0.442 px, rotation error 0.233° instead
     of 0.234°, total time 48 instead of 66-72 s; docs/decisions.md)."""
-    return {"simulate": False, "adaptive": False, "guided_epipolar": False, "fine__original_detector": "sift",
-            "fine__original_contrast": float(cfg.first_pass_contrast)}
+    return {"simulate": False, "adaptive": False, "guided_epipolar": False,
+            "fine__original_detector": cfg.first_pass_detector, "fine__original_contrast": float(cfg.first_pass_contrast)}
 
 
 def bridge_overrides(cfg: MatchConfig) -> dict[str, Any]:
@@ -137,7 +137,7 @@ def bridge_overrides(cfg: MatchConfig) -> dict[str, Any]:
     Nothing with "full" (`MatchConfig.simulate_bridges`)."""
     if cfg.simulate_bridges == "full":
         return {}
-    return {"fine__original_detector": "sift", "fine__original_contrast": float(cfg.first_pass_contrast),
+    return {"fine__original_detector": cfg.first_pass_detector, "fine__original_contrast": float(cfg.first_pass_contrast),
             "guided_epipolar": False}
 
 
