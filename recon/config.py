@@ -163,7 +163,7 @@ class MatchConfig:
     simulated views with the first pass's OpenCV SIFT on the originals and no epipolar round: a
     bridge only joins parts that their strong pairs already reconstruct; the covariant extraction
     was most of such a pair's time (sacre_coeur: 2.07x stock's total time with full bridges, 1.02-1.39x
-    in three runs with cheap ones), and with the originals' fewer matches the epipolar round followed a wrong F
+    in four runs with cheap ones), and with the originals' fewer matches the epipolar round followed a wrong F
     (36-40 matches > 4 px off the true epipolar lines per bridge of the rendered facade-groups);
     full = the second pass's default matcher, as for an image short of strong partners
     (docs/decisions.md, "Cheap bridges")."""
@@ -264,10 +264,10 @@ class VerifyConfig:
     """The verify stage: COLMAP's two-view geometry (F / E / H, RANSAC) on every matched pair."""
 
     max_error_px: float = 4.0
-    """RANSAC threshold in the database's full-resolution px: COLMAP's 4 px, what stock COLMAP
-    verifies with on the same images. (It was in working px, scaled to full resolution: 7.7 px
-    on castle_P30's 3072 px photos matched at 1600 px, which let through matches that raised the
-    reprojection error to 0.60 px against 0.57 px at 4 px; docs/decisions.md.)"""
+    """RANSAC threshold in working-resolution px; scaled to full-resolution px by the
+    working-to-full factor (capped at 3), since the matcher localises to about a working px.
+    (Stock COLMAP's 4 full-resolution px instead moved fountain_P11's, sceaux_castle's and
+    castle_P30's models by noise only: docs/decisions.md, "Verification threshold".)"""
 
     min_num_inliers: int = 15
     """Pairs with fewer verified inliers keep no two-view geometry."""

@@ -14,9 +14,9 @@ empty result, never the end of the run.
 With `--simulate needed` (`match.simulate`) the pairs run in two passes: every pair's
 originals first (`first_pass_overrides`: nothing simulated), then the default matcher on the
 weak pairs the strong-pair graph needs (`recon.core.schedule`; a pair needed only as a bridge
-between parts of that graph with the first pass's originals, `bridge_overrides`); each pass has its own matcher
-identity and so its own pair cache entries, and a weak pair left out keeps its first-pass
-matches, or none below `verify.min_num_inliers` (`PairResult.without_matches`).
+between parts of that graph with the first pass's originals, `bridge_overrides`); each pass has
+its own matcher identity and so its own pair cache entries, and a weak pair left out keeps its
+first-pass matches, or none below `verify.min_num_inliers` (`PairResult.without_matches`).
 
 With `--pairs retrieval:K+expand:E` the stage then runs match-graph expansion rounds
 (`recon.core.expansion`): each round appends the pairs the matched ones say overlap to
@@ -131,7 +131,8 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
 def bridge_overrides(cfg: MatchConfig) -> dict[str, Any]:
     """The second pass's matcher for the pairs simulated only as bridges between parts of the
     strong pair graph, on top of the default one: with `simulate_bridges = "cheap"` the first
-    pass's OpenCV SIFT on the originals instead of COLMAP's covariant SIFT, and no epipolar round
+    pass's detector on the originals (`first_pass_detector`, OpenCV's SIFT by default) instead of
+    COLMAP's covariant SIFT, and no epipolar round
     (with the cheap originals' fewer matches its F can be wrong, and the round then adds matches
     along the wrong lines that COLMAP's verification keeps); the views and the escalation stay.
     Nothing with "full" (`MatchConfig.simulate_bridges`)."""

@@ -28,10 +28,11 @@ from recon.core.state import fingerprint
 from recon.core.tracks import track_stats
 
 
-def verify_options(cfg: RunConfig) -> pycolmap.TwoViewGeometryOptions:
+def verify_options(cfg: RunConfig, px_scale: float) -> pycolmap.TwoViewGeometryOptions:
     """Two-view options for raw wide-baseline matches (`recon.core.database.two_view_options`):
-    `verify.max_error_px` in the database's full-resolution px (as stock COLMAP), seeded."""
-    return two_view_options(cfg.seed, max_error_px=cfg.verify.max_error_px, min_num_inliers=cfg.verify.min_num_inliers)
+    the threshold in working px scaled to full resolution (`px_scale`, capped at 3), seeded."""
+    return two_view_options(cfg.seed, max_error_px=cfg.verify.max_error_px * min(max(px_scale, 1.0), 3.0),
+                            min_num_inliers=cfg.verify.min_num_inliers)
 
 
 class Verify:
@@ -40,7 +41,7 @@ class Verify:
     makes = ("verified",)
 
     def key(self, run: Run) -> str | None:
-        options = options_dict(verify_options(run.cfg))
+        options = options_dict(verify_options(run.cfg, run.px_scale()))
         run.report.colmap_options["verification"] = options
         return fingerprint("verify", run.keys.get("database"), options)
 
@@ -61,7 +62,7 @@ class Verify:
         try:
             remove_db(tmp)
             shutil.copyfile(Database.path(run), tmp)
-            verify(tmp, verify_options(run.cfg), num_threads=run.cfg.num_workers)
+            verify(tmp, verify_options(run.cfg, run.px_scale()), num_threads=run.cfg.num_workers)
         except BaseException:
             remove_db(tmp)
             raise
