@@ -37,6 +37,10 @@ class DetectorConfig:
     """SIFT's contrast threshold (OpenCV's default 0.04; lower finds more, weaker keypoints); colmap-sift
     keeps COLMAP's peak threshold (0.0067, about OpenCV's 0.02)."""
 
+    precise_upscale: bool = False
+    """OpenCV SIFT only: `enable_precise_upscale` (its doubled first octave without the half-pixel
+    shift that places keypoints 0.25 px off; docs/decisions.md)."""
+
     dsp_scales: int = 10
     """colmap-sift only: the support sizes its domain-size pooling averages over (COLMAP's
     `dsp_num_scales`, default 10; fewer is cheaper: 5 takes 8.0 instead of 12.4 CPU s at 1600 px)."""
@@ -45,7 +49,8 @@ class DetectorConfig:
     def key(self) -> str:
         contrast = "" if self.contrast == 0.04 else f"c{self.contrast:g}"
         dsp = "" if self.dsp_scales == 10 or self.name != "colmap-sift" else f"d{self.dsp_scales}"
-        return f"{self.name}{self.max_features}{'r' if self.root_sift else ''}{contrast}{dsp}"
+        precise = "p" if self.precise_upscale and self.name == "sift" else ""
+        return f"{self.name}{self.max_features}{'r' if self.root_sift else ''}{contrast}{dsp}{precise}"
 
     @property
     def norm(self) -> int:
@@ -108,7 +113,8 @@ def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     """A fresh OpenCV detector (they are not thread-safe to share, so one per call); colmap-sift
     has none (`detect` calls `matching.colmap_sift`)."""
     if cfg.name == "sift":
-        return cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast)
+        return cv2.SIFT.create(nfeatures=cfg.max_features, contrastThreshold=cfg.contrast,
+                               enable_precise_upscale=bool(cfg.precise_upscale))
     if cfg.name == "orb":
         # fastThreshold lowered from 20 so low-contrast simulated views still yield keypoints
         return cv2.ORB.create(nfeatures=cfg.max_features or 1000, fastThreshold=10)

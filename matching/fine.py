@@ -69,6 +69,9 @@ class FineConfig:
     """OpenCV SIFT's contrast threshold on the originals when `original_detector` = "sift"
     (0.04 = the views' detector, one feature set; 0.02 finds about 4x the keypoints on a
     1600 px photo, about COLMAP's default peak threshold, for 0.2 s more per image)."""
+    original_precise_upscale: bool = False
+    """OpenCV SIFT's `enable_precise_upscale` on the originals when `original_detector` = "sift"
+    (`DetectorConfig.precise_upscale`)."""
     original_dsp_scales: int = 10
     """Support sizes of "colmap-sift"'s domain-size pooling (`DetectorConfig.dsp_scales`)."""
 
@@ -81,7 +84,8 @@ class FineConfig:
     def originals_detector(self) -> DetectorConfig:
         """The detector of the originals matched with each other (`original_detector`)."""
         if self.original_detector == "sift":
-            return dataclasses.replace(self.detector, contrast=self.original_contrast)
+            return dataclasses.replace(self.detector, contrast=self.original_contrast,
+                                       precise_upscale=self.original_precise_upscale)
         return DetectorConfig(self.original_detector, self.sift_features, True, dsp_scales=self.original_dsp_scales)
 
     def detector_for(self, view: ViewParams) -> DetectorConfig:

@@ -300,3 +300,20 @@ def test_fewer_pooling_scales_change_descriptors_not_keypoints(blobs):
     assert five.key != COLMAP.key
     det = FineConfig(original_detector="colmap-sift", original_dsp_scales=5).originals_detector
     assert det.dsp_scales == 5 and det.key.endswith("d5")
+
+
+def test_opencv_sift_precise_upscale_removes_the_quarter_pixel_shift():
+    """OpenCV's SIFT doubles its input with a half-pixel shift: keypoints of Gaussian blobs land
+    about +0.25 px off in x and y; `precise_upscale` (`FineConfig.original_precise_upscale` on
+    the originals) places them on the centres, and is its own feature-cache key."""
+    from matching.features import detect
+
+    img, centres = _blobs()
+    default, precise = DetectorConfig("sift", contrast=0.02), DetectorConfig("sift", contrast=0.02, precise_upscale=True)
+    shift = np.median(_offsets(detect(img, default).kpts, centres), axis=0)
+    fixed = np.median(_offsets(detect(img, precise).kpts, centres), axis=0)
+    assert np.all(shift > 0.15), shift
+    assert np.all(np.abs(fixed) < 0.08), fixed
+    assert default.key != precise.key
+    assert FineConfig(original_precise_upscale=True).originals_detector.precise_upscale
+    assert not FineConfig(original_precise_upscale=True).detector.precise_upscale  # the views keep OpenCV's default
