@@ -55,9 +55,10 @@ DESCRIPTOR_SCALE = 512.0
 
 def extraction_options(max_features: int = 0, pooling: bool = True, dsp_scales: int = 10,
                        affine: bool = True):  # -> pycolmap.FeatureExtractionOptions
-    """COLMAP's CPU SIFT options: affine shape (unless not `affine`) and domain-size pooling (unless not `pooling`) on,
-    L1-root descriptors, at most `max_features` (0 = unlimited), no downscaling (callers pass the
-    working-resolution image); pooling over `dsp_scales` support sizes (COLMAP's default 10)."""
+    """COLMAP's CPU SIFT options: affine shape (unless not `affine`) and domain-size pooling
+    (unless not `pooling`) on, L1-root descriptors, at most `max_features` (0 = unlimited), no
+    downscaling (callers pass the working-resolution image); pooling over `dsp_scales` support
+    sizes (COLMAP's default 10). Neither = COLMAP's default extraction ("colmap-sift-plain")."""
     import cv2  # noqa: F401  (cv2 before pycolmap: see the module doc)
     import pycolmap
 

@@ -160,13 +160,13 @@ class MatchConfig:
     simulate_bridges: str = field(default="cheap", metadata={"choices": "recon.config:SIMULATE_BRIDGES"})
     """`simulate = needed`: the matcher of a weak pair simulated only as a bridge between parts of
     the strong pair graph (both images have enough strong partners). cheap = the full matcher's
-    simulated views with the first pass's OpenCV SIFT on the originals and no epipolar round: a
-    bridge only joins parts that their strong pairs already reconstruct; the covariant extraction
-    was most of such a pair's time (sacre_coeur: 2.07x stock's total time with full bridges, 1.02-1.39x
-    in four runs with cheap ones), and with the originals' fewer matches the epipolar round followed a wrong F
-    (36-40 matches > 4 px off the true epipolar lines per bridge of the rendered facade-groups);
-    full = the second pass's default matcher, as for an image short of strong partners
-    (docs/decisions.md, "Cheap bridges")."""
+    simulated views with the first pass's detector on the originals (`first_pass_detector`) and
+    no epipolar round: a bridge only joins parts that their strong pairs already reconstruct;
+    the covariant extraction was most of such a pair's time (sacre_coeur: 2.07x stock's total
+    time with full bridges, 1.02-1.39x in four runs with cheap ones), and with the originals'
+    fewer matches the epipolar round followed a wrong F (36-40 matches > 4 px off the true
+    epipolar lines per bridge of the rendered facade-groups); full = the second pass's default
+    matcher, as for an image short of strong partners (docs/decisions.md, "Cheap bridges")."""
 
     first_pass_detector: str = field(default="sift", metadata={"choices": "recon.config:FIRST_PASS_DETECTORS"})
     """`simulate = needed`: the detector of the originals in the first pass (and of cheap
@@ -267,7 +267,8 @@ class VerifyConfig:
     """RANSAC threshold in working-resolution px; scaled to full-resolution px by the
     working-to-full factor (capped at 3), since the matcher localises to about a working px.
     (Stock COLMAP's 4 full-resolution px instead moved fountain_P11's, sceaux_castle's and
-    castle_P30's models by noise only: docs/decisions.md, "Verification threshold".)"""
+    castle_P30's exhaustive-pair models by noise only, and helped castle_P30's retrieval pairs:
+    docs/decisions.md, "Verification threshold".)"""
 
     min_num_inliers: int = 15
     """Pairs with fewer verified inliers keep no two-view geometry."""

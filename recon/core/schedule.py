@@ -19,10 +19,9 @@ reconstruct, and is marked `bridge` so that the match stage can give it a cheape
 (`MatchConfig.simulate_bridges`). A weak pair between two well-connected images of one
 component is left with its first-pass matches: the scene registers and triangulates through its
 strong pairs, and simulating it costs 1-3 s per pair (most such pairs of an exhaustive selection
-do not overlap at all). A scene of
-only extreme pairs (no strong graph) simulates every pair when it is small (each image's
-2 x `min_partners` most promising pairs: all of a 4-view scene's), and a few per image when it
-is large.
+do not overlap at all). A scene of only extreme pairs (no strong graph) simulates every pair
+when it is small (each image's 2 x `min_partners` most promising pairs: all of a 4-view scene's),
+and a few per image when it is large.
 """
 
 from __future__ import annotations
