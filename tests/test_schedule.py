@@ -192,6 +192,7 @@ def test_bridges_between_two_groups_of_views_get_the_cheap_matcher_and_join_the_
         reports[bridges] = (rep, simulated, err)
     cheap, full = reports["cheap"], reports["full"]
     assert [p["image0"] + p["image1"] for p in cheap[1]] == [p["image0"] + p["image1"] for p in full[1]]
-    # the cheap bridges: no covariant extraction, no epipolar round; the groups still join accurately
-    assert sum(p["seconds"] for p in cheap[1]) < sum(p["seconds"] for p in full[1])
+    # the cheap bridges: no covariant extraction of their images (fewer feature sets computed),
+    # no epipolar round; the groups still join accurately
+    assert cheap[0].features_computed < full[0].features_computed
     assert cheap[2] < 0.5, cheap[2]
