@@ -124,22 +124,25 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
     matches, and the round took a third of the pass (on fountain_P11 without it: 15673 instead
     of 17647 points, reprojection error 0.396 instead of 0.442 px, rotation error 0.233° instead
     of 0.234°, total time 48 instead of 66-72 s; docs/decisions.md)."""
-    return {"simulate": False, "adaptive": False, "guided_epipolar": False,
-            "fine__original_detector": cfg.first_pass_detector, "fine__original_contrast": float(cfg.first_pass_contrast)}
+    return {"simulate": False, "adaptive": False, "guided_epipolar": False, **_first_pass_originals(cfg)}
 
 
 def bridge_overrides(cfg: MatchConfig) -> dict[str, Any]:
     """The second pass's matcher for the pairs simulated only as bridges between parts of the
     strong pair graph, on top of the default one: with `simulate_bridges = "cheap"` the first
     pass's detector on the originals (`first_pass_detector`, OpenCV's SIFT by default) instead of
-    COLMAP's covariant SIFT, and no epipolar round
-    (with the cheap originals' fewer matches its F can be wrong, and the round then adds matches
-    along the wrong lines that COLMAP's verification keeps); the views and the escalation stay.
-    Nothing with "full" (`MatchConfig.simulate_bridges`)."""
+    COLMAP's covariant SIFT, and no epipolar round (with the cheap originals' fewer matches its F
+    can be wrong, and the round then adds matches along the wrong lines that COLMAP's
+    verification keeps); the views and the escalation stay. Nothing with "full"
+    (`MatchConfig.simulate_bridges`)."""
     if cfg.simulate_bridges == "full":
         return {}
-    return {"fine__original_detector": cfg.first_pass_detector, "fine__original_contrast": float(cfg.first_pass_contrast),
-            "guided_epipolar": False}
+    return {"guided_epipolar": False, **_first_pass_originals(cfg)}
+
+
+def _first_pass_originals(cfg: MatchConfig) -> dict[str, Any]:
+    """The first pass's detector of the originals, as matcher overrides (shared with cheap bridges)."""
+    return {"fine__original_detector": cfg.first_pass_detector, "fine__original_contrast": float(cfg.first_pass_contrast)}
 
 
 def _replace_path(obj: Any, path: str, value: Any) -> Any:
@@ -252,10 +255,15 @@ class Match:
         from recon.core.schedule import ScheduleConfig, pairs_to_simulate
 
         cfg = run.cfg.match
-        extra = first_pass_overrides(cfg)
-        cheap = make_matcher(cfg, run.cfg.seed, inner_workers=1 if len(run.data.pairs) - first >= run.cfg.num_workers
-                             else 0, num_images=len(run.data.scene.images), extra=extra)
+
+        def matcher_with(extra: dict[str, Any], num_pairs: int) -> PairMatcher:
+            # threads inside the matcher only when there are fewer pairs than pair threads (as `run`)
+            return make_matcher(cfg, run.cfg.seed, inner_workers=1 if num_pairs >= run.cfg.num_workers else 0,
+                                num_images=len(run.data.scene.images), extra=extra)
+
         n = len(run.data.pairs)
+        extra = first_pass_overrides(cfg)
+        cheap = matcher_with(extra, n - first)
         done = Match._match_indices(run, cheap, pair_dir, list(range(first, n)), extra, emit=False, part="originals")
         results = {i: r for i, (r, _) in done.items()}
         cached = {i: c for i, (_, c) in done.items()}
@@ -287,9 +295,8 @@ class Match:
         groups: list[tuple[PairMatcher, dict[str, Any] | None, list[int], str]] = [
             (matcher, None, [i for i in todo if i not in bridges], "simulated views")]
         if bridges:
-            bridge_matcher = make_matcher(cfg, run.cfg.seed, inner_workers=1 if len(bridges) >= run.cfg.num_workers
-                                          else 0, num_images=len(run.data.scene.images), extra=bridge_extra)
-            groups.append((bridge_matcher, bridge_extra, sorted(bridges), "bridges (simulated views)"))
+            groups.append((matcher_with(bridge_extra, len(bridges)), bridge_extra, sorted(bridges),
+                           "bridges (simulated views)"))
         for group_matcher, group_extra, indices, part in groups:
             if not indices:
                 continue
