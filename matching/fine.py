@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .features import DetectorConfig, Features
-from .matching_utils import ratio_match, unique_train
+from .matching_utils import mutual_matches, ratio_match, unique_train
 from .store import FeatureStore
 from .types import CoarseScore, ViewParams
 from .viewfeatures import original_features, view_features
@@ -74,6 +74,11 @@ class FineConfig:
     (`DetectorConfig.precise_upscale`)."""
     original_dsp_scales: int = 10
     """Support sizes of "colmap-sift"'s domain-size pooling (`DetectorConfig.dsp_scales`)."""
+    original_cross_check: bool = False
+    """Keep only the originals' ratio-test matches that are mutual nearest neighbours (COLMAP's
+    cross-check): a target keypoint whose own nearest reference keypoint is another one is
+    dropped. `recon run --simulate needed` turns it on in its first pass
+    (`recon.config.MatchConfig.first_pass_cross_check`)."""
 
     @property
     def detector(self) -> DetectorConfig:
@@ -169,6 +174,9 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
         fv = view_features(store, ref, capped_view(view, size, cfg.max_area_ratio), det, cfg.interp, cfg.antialias)
         ft, offset = tf.part(det)
         m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio, seed)
+        if cfg.original_cross_check and view.is_identity and len(m):
+            keep = mutual_matches(m, fv.descriptors, ft.descriptors, cv2.NORM_L2, seed)
+            m, d = m[keep], d[keep]
         if offset and len(m):
             m = m.copy()
             m[:, 1] += offset

@@ -37,6 +37,26 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
     return np.stack([q, idx[q, 0]], axis=1).astype(np.int32), d[q, 0]
 
 
+def mutual_matches(matches: NDArray[np.int32], desc_q: NDArray, desc_t: NDArray, norm: int, seed: int = 0,
+                   flann_min_size: int = FLANN_MIN_SIZE) -> NDArray[np.bool_]:
+    """Mask of the (query, train) `matches` whose train descriptor has its query as nearest
+    neighbour among all of `desc_q` (COLMAP's cross-check). Only the matched train descriptors
+    are searched, so it costs a fraction of a second matching; the same k-d forest (seeded) or
+    brute force as `ratio_match`."""
+    if len(matches) == 0:
+        return np.zeros(0, bool)
+    train, inverse = np.unique(matches[:, 1], return_inverse=True)
+    queries = np.ascontiguousarray(desc_t[train])
+    if norm != cv2.NORM_HAMMING and min(len(desc_q), len(queries)) >= flann_min_size:
+        cv2.setRNGSeed(seed)
+        index = cv2.flann.Index(np.ascontiguousarray(desc_q, np.float32), {"algorithm": 1, "trees": 4})
+        idx, _ = index.knnSearch(np.ascontiguousarray(queries, np.float32), 1, params={"checks": 64})
+    else:
+        dtype = cv2.CV_32S if norm == cv2.NORM_HAMMING else cv2.CV_32F
+        _, idx = cv2.batchDistance(queries, desc_q, dtype, normType=norm, K=1)
+    return np.asarray(idx, np.int64).reshape(-1)[inverse.reshape(-1)] == matches[:, 0]
+
+
 def ratio_filter(knn, ratio: float) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """(K, 2) (query, train) pairs and (K,) distances of OpenCV k-NN results passing the ratio test."""
     out, dist = [], []

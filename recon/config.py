@@ -178,6 +178,11 @@ class MatchConfig:
     """`simulate = needed`: OpenCV SIFT's contrast threshold on the originals in the first pass
     (0.02: about the keypoints of COLMAP's default extraction, 4x those of 0.04 at 1600 px)."""
 
+    first_pass_cross_check: bool = True
+    """`simulate = needed`: keep only the mutual nearest neighbours among the originals' matches in
+    the first pass and in cheap bridges (`matcher.fine.original_cross_check`, as COLMAP's
+    matcher does; docs/decisions.md, "Cross-check in the first pass")."""
+
     matcher: dict[str, Any] = field(default_factory=dict)
     """The matcher's own options by field name, e.g. {"fine_top_k": 3, "coarse.rank_by": "matches"}
     (`--set matcher.KEY=VALUE`, or a `[matcher]` table in a config file); values are checked

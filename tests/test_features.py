@@ -95,3 +95,28 @@ def test_flann_ratio_match_equals_opencv_flann_matcher():
     assert len(m) > 200
     np.testing.assert_array_equal(m, m_ref)
     np.testing.assert_allclose(d, d_ref, rtol=1e-6)
+
+
+def test_mutual_matches_keep_exactly_the_cross_checked_ratio_matches():
+    """`mutual_matches` keeps a ratio-test match when its target keypoint's own nearest reference
+    keypoint is the query (COLMAP's cross-check): checked against exact nearest neighbours both
+    ways on SIFT of a procedural texture and its shrunk copy, by brute force and by the k-d forest."""
+    import cv2 as cv
+
+    from matching.matching_utils import mutual_matches, ratio_match
+    from scenes.texture import procedural_texture
+
+    tex = procedural_texture(4.0, 3.0, 220.0, seed=7)
+    gray = cv.cvtColor(tex, cv.COLOR_BGR2GRAY) if tex.ndim == 3 else tex
+    sift = cv.SIFT.create()
+    _, d0 = sift.detectAndCompute(gray, None)
+    _, d1 = sift.detectAndCompute(cv.resize(gray, None, fx=0.7, fy=0.7, interpolation=cv.INTER_AREA), None)
+    m, _ = ratio_match(d0, d1, cv.NORM_L2, 0.9, seed=0, flann_min_size=10**9)
+    _, back = cv.batchDistance(d1, d0, cv.CV_32F, normType=cv.NORM_L2, K=1)
+    truth = back.reshape(-1)[m[:, 1]] == m[:, 0]
+    assert 0 < truth.sum() < len(m)  # a loose ratio lets in matches that fail the check
+    exact = mutual_matches(m, d0, d1, cv.NORM_L2, flann_min_size=10**9)
+    np.testing.assert_array_equal(exact, truth)
+    approx = mutual_matches(m, d0, d1, cv.NORM_L2, seed=0, flann_min_size=10)
+    assert (approx == truth).mean() > 0.97
+    assert mutual_matches(m[:0], d0, d1, cv.NORM_L2).shape == (0,)

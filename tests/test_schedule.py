@@ -13,6 +13,7 @@ from matching.config import MatcherConfig
 from matching.io import load_gray
 from matching.matcher import ExtraAffineMatcher
 from matching.store import FeatureStore
+from matching.types import ViewParams
 from recon.core.schedule import ScheduleConfig, components, pairs_to_simulate
 
 
@@ -116,6 +117,35 @@ def test_first_pass_matches_only_the_originals_of_an_easy_pair(corner_scene):
     assert r.reference is None and r.escalation == ""
     assert "coarse" not in r.timings and "reference" not in r.timings
     assert r.verified >= 100 and r.num_matches >= r.verified * 0.8
+    assert cfg.fine.original_cross_check
+
+
+def test_first_pass_cross_check_keeps_the_mutual_nearest_neighbours(corner_scene):
+    """The first pass's originals keep a ratio-test match only when it is also the target
+    keypoint's nearest neighbour (COLMAP's cross-check): fewer raw matches, each one mutual."""
+    import cv2
+
+    from matching.fine import fine_match, target_features
+    from matching.viewfeatures import original_features
+
+    a, b = "view_00.png", "view_03.png"  # 51 degrees apart: ambiguous matches to drop
+    cfg = _first_pass().fine
+    store = _store(corner_scene, a, b)
+    identity = [ViewParams(1.0, 0.0, 1.0)]
+    checked = fine_match(store, a, b, identity, cfg)
+    loose = fine_match(store, a, b, identity, replace(cfg, original_cross_check=False))
+    assert 0 < len(checked.matches) < len(loose.matches)
+    det = cfg.originals_detector
+    fa = original_features(store, a, det)
+    fb, offset = target_features(store, b, cfg).part(det)
+    _, nearest_in_a = cv2.batchDistance(fb.descriptors, fa.descriptors, cv2.CV_32F, normType=cv2.NORM_L2, K=1)
+
+    def mutual(fm) -> np.ndarray:  # the target keypoint's exact nearest reference keypoint is the match's
+        back = fa.kpts[nearest_in_a.reshape(-1)[fm.matches[:, 1] - offset]]
+        return np.all(back == fm.kpts_ref[fm.matches[:, 0]], axis=1)
+
+    assert mutual(checked).all()  # fewer matched keypoints than FLANN_MIN_SIZE: an exact reverse search
+    assert not mutual(loose).all()
 
 
 def test_first_pass_defers_a_grazing_pair(facade_extreme_scene):

@@ -41,11 +41,13 @@ def step_deg(num_views: int, max_azimuth_deg: float) -> float:
     return 2.0 * max_azimuth_deg / (num_views - 1)
 
 
-def _scene(out: Path, preset: str, seed: int, image_size: tuple[int, int] | None, log: Log) -> tuple[Path, bool]:
-    """(scene folder, whether it was (re-)rendered now: earlier runs on it are then stale)."""
+def _scene(out: Path, preset: str, seed: int, image_size: tuple[int, int] | None, log: Log,
+           name: str | None = None) -> tuple[Path, bool]:
+    """(scene folder OUT/scenes/<name, default the preset>, whether it was (re-)rendered now:
+    earlier runs on it are then stale)."""
     from scenes.render import render_scene
 
-    d = out / "scenes" / preset
+    d = out / "scenes" / (name or preset)
     meta_path = d / "gt" / "scene.json"
     if meta_path.is_file():
         try:

@@ -142,7 +142,8 @@ def bridge_overrides(cfg: MatchConfig) -> dict[str, Any]:
 
 def _first_pass_originals(cfg: MatchConfig) -> dict[str, Any]:
     """The first pass's detector of the originals, as matcher overrides (shared with cheap bridges)."""
-    return {"fine__original_detector": cfg.first_pass_detector, "fine__original_contrast": float(cfg.first_pass_contrast)}
+    return {"fine__original_detector": cfg.first_pass_detector, "fine__original_contrast": float(cfg.first_pass_contrast),
+            "fine__original_cross_check": bool(cfg.first_pass_cross_check)}
 
 
 def _replace_path(obj: Any, path: str, value: Any) -> Any:
