@@ -5,7 +5,8 @@ swings with a single relative rotation (issues 11 and 13).
 Each (preset, size, seed) scene is rendered under OUT/scenes (`scenes.render.render_scene`; a
 finished render is reused), stock COLMAP runs once per scene (`--stock-presets`, deterministic per
 seed) and `recon run` once per `--variant LABEL=KEY=VALUE[,KEY=VALUE]` (the `--set` syntax;
-`LABEL=` = no override), one after the other, so their times are side by side.
+`LABEL=` = no override), one after the other and each from an empty output folder, so their
+times are side by side.
 
     python benchmarks/bench_rendered_variants.py --out /tmp/rv --presets facade-groups \\
         --sizes 640x480,800x600,1024x768 --seeds 0,1,2 \\
@@ -119,7 +120,9 @@ def main(argv: list[str] | None = None) -> int:
                     rows.append(row_of(preset, size, seed, f"stock-{p}", m))
                 for label, settings in variants:
                     print(f"{name}: ours {label} {settings}", file=sys.stderr)
-                    m = run_variant(scene, out / "runs" / name / f"ours-{label}", gt, settings, 0)
+                    run_dir = out / "runs" / name / f"ours-{label}"
+                    shutil.rmtree(run_dir, ignore_errors=True)  # cold: no pair or feature cache of an earlier call
+                    m = run_variant(scene, run_dir, gt, settings, 0)
                     rows.append(row_of(preset, size, seed, f"ours-{label}", m))
                     write_json_atomic(out / "variants.json", {"config": config, "rows": rows})
                 print(table([r for r in rows if (r["scene"], r["size"], r["seed"]) == (preset, size, seed)]),
