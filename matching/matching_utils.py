@@ -41,7 +41,7 @@ def mutual_matches(matches: NDArray[np.int32], desc_q: NDArray, desc_t: NDArray,
                    flann_min_size: int = FLANN_MIN_SIZE) -> NDArray[np.bool_]:
     """Mask of the (query, train) `matches` whose train descriptor has its query as nearest
     neighbour among all of `desc_q` (COLMAP's cross-check). Only the matched train descriptors
-    are searched, so it costs a fraction of a second matching; the same k-d forest (seeded) or
+    are searched, so it costs a fraction of the forward matching; the same k-d forest (seeded) or
     brute force as `ratio_match`."""
     if len(matches) == 0:
         return np.zeros(0, bool)
