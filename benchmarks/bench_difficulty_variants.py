@@ -52,6 +52,16 @@ def run_variant(scene: Path, out: Path, gt, settings: list[str], seed: int) -> d
     return method_result("ours", report, mem, gt, out, err)
 
 
+def parse_variants(specs: list[str]) -> list[tuple[str, list[str]]]:
+    """`--variant LABEL=KEY=VALUE[,KEY=VALUE]` specs as (label, `--set` settings); none = one
+    variant "base" without overrides."""
+    variants = []
+    for v in specs or ["base="]:
+        label, _, rest = v.partition("=")
+        variants.append((label, [s for s in rest.split(",") if s.strip()]))
+    return variants
+
+
 def row_of(name: str, m: dict[str, Any], n: int, step: float, source: str) -> dict[str, Any]:
     return {"views": n, "step_deg": round(step, 2), "method": name, "status": m.get("status"),
             "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
@@ -85,10 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
 
-    variants: list[tuple[str, list[str]]] = []
-    for v in args.variant or ["base="]:
-        label, _, rest = v.partition("=")
-        variants.append((label, [s for s in rest.split(",") if s.strip()]))
+    variants = parse_variants(args.variant)
     out = args.out.expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
     config = {"views": args.views, "variants": dict(variants), "seed": args.seed,

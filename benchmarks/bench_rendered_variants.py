@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench_difficulty_variants import run_variant
+from bench_difficulty_variants import parse_variants, run_variant
 
 import recon  # noqa: F401  (cv2 before pycolmap)
 from recon.core.jsonio import write_json_atomic
@@ -97,10 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
 
-    variants: list[tuple[str, list[str]]] = []
-    for v in args.variant or ["base="]:
-        label, _, rest = v.partition("=")
-        variants.append((label, [s for s in rest.split(",") if s.strip()]))
+    variants = parse_variants(args.variant)
     stock_presets = [p for p in args.stock_presets.split(",") if p]
     out = args.out.expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
