@@ -39,6 +39,26 @@ def test_descriptors_follow_the_keypoints_snapped_or_upright(corner_scene):
     assert empty.shape == (0, 128) and st.snapped == st.upright == 0
 
 
+def test_descriptors_from_the_feature_stores_detections_are_the_same(corner_scene):
+    """The database stage hands over the store's default-SIFT set of the original (the reference
+    decision's) instead of detecting again: the same rows, at half resolution too."""
+    from matching.features import DetectorConfig
+    from matching.store import FeatureStore
+    from matching.viewfeatures import original_features
+
+    gray = cv2.imread(str(sorted((corner_scene / "images").iterdir())[1]), cv2.IMREAD_GRAYSCALE)
+    store = FeatureStore()
+    store.add_image("a", gray)
+    det = original_features(store, "a", DetectorConfig("sift"))
+    rng = np.random.default_rng(0)
+    near = det.kpts[::5] + rng.normal(0.0, 0.8, (len(det.kpts[::5]), 2)).astype(np.float32)
+    kpts_full = (np.vstack([near, rng.random((80, 2), np.float32) * gray.shape[::-1]]) + 0.5) * 2.0 - 0.5
+    detected, s0 = sift_descriptors(gray, kpts_full, (0.5, 0.5))
+    handed, s1 = sift_descriptors(gray, kpts_full, (0.5, 0.5), det)
+    assert s0 == s1 and s0.snapped > 0 and s0.upright > 0
+    np.testing.assert_array_equal(handed, detected)
+
+
 def test_colmap_matches_the_database_with_its_own_matcher(corner_sift_run, tmp_path):
     """The run's database holds one SIFT descriptor per keypoint; with our matches removed,
     COLMAP's exhaustive matcher (its own descriptor matching and verification) finds verified

@@ -25,6 +25,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from matching.features import Features
+
 SIFT_METHODS: frozenset[str] = frozenset({"extra-affine", "sift", "asift"})
 SNAP_PX = 2.0  # working px: how far a merged keypoint may be from a SIFT detection to take its descriptor
 
@@ -47,9 +49,13 @@ def colmap_sift_u8(desc: NDArray[np.float32]) -> NDArray[np.uint8]:
 
 
 def sift_descriptors(gray_work: NDArray[np.uint8], kpts_full: NDArray[np.float32],
-                     scale_xy: tuple[float, float]) -> tuple[NDArray[np.uint8], DescriptorStats]:
+                     scale_xy: tuple[float, float], detections: Features | None = None
+                     ) -> tuple[NDArray[np.uint8], DescriptorStats]:
     """(N, 128) uint8 descriptors for the full-resolution keypoints `kpts_full` (see module doc),
-    from the working-resolution gray photo `gray_work` (`scale_xy` = working / full size)."""
+    from the working-resolution gray photo `gray_work` (`scale_xy` = working / full size).
+    `detections`: OpenCV's default SIFT of `gray_work` when the caller has it already (the
+    feature store's `DetectorConfig("sift")` set of the original, the same detections), else it
+    is run here."""
     from scipy.spatial import cKDTree
 
     k = np.asarray(kpts_full, np.float64).reshape(-1, 2)
@@ -59,15 +65,20 @@ def sift_descriptors(gray_work: NDArray[np.uint8], kpts_full: NDArray[np.float32
     sx, sy = scale_xy
     k_work = np.stack([(k[:, 0] + 0.5) * sx - 0.5, (k[:, 1] + 0.5) * sy - 0.5], axis=1)
     sift = cv2.SIFT.create()
-    det, desc = sift.detectAndCompute(gray_work, None)
+    if detections is None:
+        det, desc_det = sift.detectAndCompute(gray_work, None)
+        pts = np.array([d.pt for d in det], np.float64).reshape(-1, 2)
+        sizes = np.array([d.size for d in det], np.float64)
+    else:
+        pts, sizes, desc_det = (np.asarray(detections.kpts, np.float64).reshape(-1, 2),
+                                np.asarray(detections.sizes, np.float64), detections.descriptors)
     out = np.zeros((n, 128), np.float32)
     snapped = np.zeros(n, bool)
-    sizes = np.array([d.size for d in det], np.float64)
-    if len(det):
-        tree = cKDTree(np.array([d.pt for d in det], np.float64))
+    if len(pts):
+        tree = cKDTree(pts)
         dist, idx = tree.query(k_work, distance_upper_bound=SNAP_PX)
         snapped = np.isfinite(dist)
-        out[snapped] = desc[idx[snapped]]
+        out[snapped] = desc_det[idx[snapped]]
     rest = np.flatnonzero(~snapped)
     if len(rest):
         size = float(np.median(sizes)) if len(sizes) else 4.0

@@ -50,9 +50,13 @@ def with_descriptors(run: Run) -> bool:
 
 def write_sift_descriptors(run: Run, db_path: Path, ids: dict[str, int]) -> None:
     """SIFT descriptors of the original photos at each image's keypoints, one row per keypoint
-    (`recon.core.descriptors`), as COLMAP's SIFT descriptors."""
+    (`recon.core.descriptors`), as COLMAP's SIFT descriptors. The originals' default SIFT comes
+    from the feature store: the matcher's reference decision has it already (and a resumed run
+    finds it in the feature cache)."""
     import pycolmap
 
+    from matching.features import DetectorConfig
+    from matching.viewfeatures import original_features
     from recon.core.descriptors import sift_descriptors
 
     d = run.data
@@ -61,7 +65,8 @@ def write_sift_descriptors(run: Run, db_path: Path, ids: dict[str, int]) -> None
         with pycolmap.DatabaseTransaction(db):
             for name, iid in ids.items():
                 im = d.scene.image(name)
-                desc, _ = sift_descriptors(d.store.image(name), d.keypoints[name], im.scale_xy)
+                desc, _ = sift_descriptors(d.store.image(name), d.keypoints[name], im.scale_xy,
+                                           original_features(d.store, name, DetectorConfig("sift")))
                 db.write_descriptors(iid, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, desc))
     finally:
         db.close()
