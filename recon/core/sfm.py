@@ -74,11 +74,17 @@ def allow_two_view_model(o: pycolmap.IncrementalPipelineOptions) -> pycolmap.Inc
     return o
 
 
+def threshold_scale(px_scale: float) -> float:
+    """Factor from working px to the database's full-resolution px for COLMAP's pixel thresholds:
+    the working-to-full-resolution factor `px_scale`, at least 1 and capped at 3 (module doc)."""
+    return float(min(max(px_scale, 1.0), 3.0))
+
+
 def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0, num_images: int | None = None
                     ) -> pycolmap.IncrementalPipelineOptions:
     """IncrementalPipelineOptions for a small wide-baseline scene (see module doc); with
     `num_images == 2` also `allow_two_view_model`."""
-    f = float(min(max(px_scale, 1.0), 3.0))
+    f = threshold_scale(px_scale)
     o = pycolmap.IncrementalPipelineOptions()
     o.min_num_matches = 15
     o.multiple_models = True

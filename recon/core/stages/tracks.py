@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from recon.core.context import Run
+from recon.core.sfm import threshold_scale
 from recon.core.tracks import PairMatches, consistent_tracks, epipolar_inliers, merge_tracks, track_stats
 
 
@@ -41,7 +42,7 @@ class Tracks:
         nk = {n: len(k) for n, k in merged.keypoints.items()}
         before = track_stats(nk, merged.pairs, merged.matches)["inconsistent_share"]
         if run.cfg.tracks.consistent:
-            max_error_px = run.cfg.tracks.trust_px * min(max(run.px_scale(), 1.0), 3.0)  # scaled as the verify stage
+            max_error_px = run.cfg.tracks.trust_px * threshold_scale(run.px_scale())  # as the verify stage
             merged = consistent_tracks(merged, epipolar_inliers(merged, max_error_px, run.cfg.seed))
         data.merged = merged
         data.keypoints = {n: merged.keypoints.get(n, np.zeros((0, 2), np.float32)) for n in scene.names}

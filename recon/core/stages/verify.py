@@ -23,6 +23,7 @@ from recon.config import RunConfig
 from recon.core.context import Run
 from recon.core.database import database_is_sound, read_verified, two_view_options, verify
 from recon.core.report import PairRow, options_dict
+from recon.core.sfm import threshold_scale
 from recon.core.stages.database import Database, remove_db, replace_db
 from recon.core.state import fingerprint
 from recon.core.tracks import track_stats
@@ -31,7 +32,7 @@ from recon.core.tracks import track_stats
 def verify_options(cfg: RunConfig, px_scale: float) -> pycolmap.TwoViewGeometryOptions:
     """Two-view options for raw wide-baseline matches (`recon.core.database.two_view_options`):
     the threshold in working px scaled to full resolution (`px_scale`, capped at 3), seeded."""
-    return two_view_options(cfg.seed, max_error_px=cfg.verify.max_error_px * min(max(px_scale, 1.0), 3.0),
+    return two_view_options(cfg.seed, max_error_px=cfg.verify.max_error_px * threshold_scale(px_scale),
                             min_num_inliers=cfg.verify.min_num_inliers)
 
 
