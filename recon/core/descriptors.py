@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from matching.features import Features
+from matching.features import DetectorConfig, Features, detect
 
 SIFT_METHODS: frozenset[str] = frozenset({"extra-affine", "sift", "asift"})
 SNAP_PX = 2.0  # working px: how far a merged keypoint may be from a SIFT detection to take its descriptor
@@ -53,9 +53,8 @@ def sift_descriptors(gray_work: NDArray[np.uint8], kpts_full: NDArray[np.float32
                      ) -> tuple[NDArray[np.uint8], DescriptorStats]:
     """(N, 128) uint8 descriptors for the full-resolution keypoints `kpts_full` (see module doc),
     from the working-resolution gray photo `gray_work` (`scale_xy` = working / full size).
-    `detections`: OpenCV's default SIFT of `gray_work` when the caller has it already (the
-    feature store's `DetectorConfig("sift")` set of the original, the same detections), else it
-    is run here."""
+    `detections`: OpenCV's default SIFT of `gray_work` (`DetectorConfig("sift")`) when the caller
+    has it already (the feature store's set of the original), else detected here."""
     from scipy.spatial import cKDTree
 
     k = np.asarray(kpts_full, np.float64).reshape(-1, 2)
@@ -64,14 +63,12 @@ def sift_descriptors(gray_work: NDArray[np.uint8], kpts_full: NDArray[np.float32
         return np.zeros((0, 128), np.uint8), DescriptorStats()
     sx, sy = scale_xy
     k_work = np.stack([(k[:, 0] + 0.5) * sx - 0.5, (k[:, 1] + 0.5) * sy - 0.5], axis=1)
-    sift = cv2.SIFT.create()
     if detections is None:
-        det, desc_det = sift.detectAndCompute(gray_work, None)
-        pts = np.array([d.pt for d in det], np.float64).reshape(-1, 2)
-        sizes = np.array([d.size for d in det], np.float64)
-    else:
-        pts, sizes, desc_det = (np.asarray(detections.kpts, np.float64).reshape(-1, 2),
-                                np.asarray(detections.sizes, np.float64), detections.descriptors)
+        detections = detect(gray_work, DetectorConfig("sift"))
+    pts = np.asarray(detections.kpts, np.float64).reshape(-1, 2)
+    sizes = np.asarray(detections.sizes, np.float64)
+    desc_det = detections.descriptors
+    sift = cv2.SIFT.create()
     out = np.zeros((n, 128), np.float32)
     snapped = np.zeros(n, bool)
     if len(pts):
