@@ -7,12 +7,36 @@ convention); callers map them to original-image coordinates (see `matching.views
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
-from typing import Literal
+import weakref
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from .matching_utils import KdForest
+
+FOREST_BUDGET_BYTES = 512 << 20
+"""Memory the shared k-d forests of all `Features` may hold (least recently used dropped first):
+enough for about 50 originals of 15k SIFT descriptors, the whole of a 30-image scene at 1600 px;
+a forest dropped is rebuilt on its next use, as every use built it before sharing."""
+_FOREST_BYTES_PER_DESCRIPTOR = 700  # resident memory of a 4-tree forest, its data not counted (measured)
+_FOREST_LOCK = threading.RLock()  # reentrant: a weakref callback may run inside a locked block
+_FOREST_LRU: OrderedDict[tuple[int, int], tuple[weakref.ref, int]] = OrderedDict()
+_forest_bytes = 0
+
+
+def _forget_forest(key: tuple[int, int]) -> None:
+    global _forest_bytes
+    with _FOREST_LOCK:
+        entry = _FOREST_LRU.pop(key, None)
+        if entry is not None:
+            _forest_bytes -= entry[1]
+            owner = entry[0]()
+            if owner is not None:
+                owner.forests.pop(key[1], None)
 
 DetectorName = Literal["sift", "orb", "colmap-sift", "colmap-sift-affine", "colmap-sift-plain"]
 COLMAP_DETECTORS = ("colmap-sift", "colmap-sift-affine", "colmap-sift-plain")
@@ -69,9 +93,33 @@ class Features:
     descriptors: NDArray  # uint8 (ORB, 32 bytes) or float32 (SIFT, 128)
     responses: NDArray[np.float32] | None = None
     frames: NDArray[np.float64] | None = None
+    forests: dict[int, KdForest] = field(default_factory=dict, init=False, repr=False, compare=False)
+    """The k-d forests of these descriptors built so far, by seed (`forest`; not pickled)."""
 
     def __len__(self) -> int:
         return int(len(self.kpts))
+
+    def forest(self, seed: int = 0) -> KdForest:
+        """The FLANN k-d forest of these (float) descriptors for `seed`, built on first use and
+        kept with them: an original's features live in the feature store, so every pair and view
+        that searches them shares one forest (`matching_utils.KdForest`). Thread-safe."""
+        global _forest_bytes
+        key = (id(self), int(seed))
+        with _FOREST_LOCK:
+            forest = self.forests.get(int(seed))
+            if forest is not None:
+                _FOREST_LRU.move_to_end(key)
+                return forest
+            forest = self.forests[int(seed)] = KdForest(self.descriptors, seed)
+            size = len(self) * _FOREST_BYTES_PER_DESCRIPTOR
+            _FOREST_LRU[key] = (weakref.ref(self, lambda _: _forget_forest(key)), size)
+            _forest_bytes += size
+            while _forest_bytes > FOREST_BUDGET_BYTES and len(_FOREST_LRU) > 1:
+                _forget_forest(next(iter(_FOREST_LRU)))
+            return forest
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "forests": {}}  # an OpenCV index does not pickle; it is rebuilt on use
 
     def subset(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> Features:
         resp = None if self.responses is None else self.responses[keep]

@@ -7,26 +7,51 @@ import numpy as np
 from numpy.typing import NDArray
 
 FLANN_MIN_SIZE = 1500  # brute force below this many descriptors on either side
+FLANN_TREES, FLANN_CHECKS = 4, 64  # the k-d forest FlannBasedMatcher builds by default; leaves searched
+
+
+class KdForest:
+    """A seeded FLANN k-d forest over float descriptors (the index `ratio_match` searches), built
+    once and searched any number of times, from any thread (a FLANN search keeps its state on the
+    caller's stack). Built with OpenCV's RNG seeded to `seed` just before, so it is the forest
+    `ratio_match` would build itself for these descriptors and seed: sharing it changes no match.
+    Why: an original's forest was rebuilt for every pair and view that searched it (0.07 CPU s
+    for 15k SIFT descriptors, a fifth of a search; docs/decisions.md, "One k-d forest per image")."""
+
+    def __init__(self, desc: NDArray, seed: int = 0):
+        # FLANN indexes this memory without copying it: the forest keeps it alive
+        self.data = np.ascontiguousarray(desc, np.float32)
+        self.seed = int(seed)
+        cv2.setRNGSeed(self.seed)
+        self._index = cv2.flann.Index(self.data, {"algorithm": 1, "trees": FLANN_TREES})
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def knn(self, queries: NDArray, k: int) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+        """(indices, squared L2 distances), each (len(queries), k), nearest first."""
+        return self._index.knnSearch(np.ascontiguousarray(queries, np.float32), k, params={"checks": FLANN_CHECKS})
 
 
 def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75, seed: int = 0,
-                flann_min_size: int = FLANN_MIN_SIZE) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+                flann_min_size: int = FLANN_MIN_SIZE, forest_t: KdForest | None = None
+                ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Lowe's ratio test: (K, 2) (query, train) indices and the nearest distances.
 
     Brute force (exact) for small sets, such as ORB 1000 or the 1000 strongest SIFT; a seeded
     FLANN k-d forest for float descriptors when both sides exceed `flann_min_size`, where it is
     several times faster with nearly the same matches (docs/decisions.md).
     OpenCV's per-thread RNG is seeded just before the index is built, so results are
-    deterministic whichever thread runs them.
+    deterministic whichever thread runs them. `forest_t`: `desc_t`'s forest built already
+    (`Features.forest`), used when the forest is the one this call would build (same seed).
     """
     if len(desc_q) < 1 or len(desc_t) < 2:
         return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
     if norm != cv2.NORM_HAMMING and min(len(desc_q), len(desc_t)) >= flann_min_size:
         # the k-d forest FlannBasedMatcher builds, searched for arrays (no DMatch objects: the same
         # neighbours, tests/test_features.py); FLANN returns squared L2 distances
-        cv2.setRNGSeed(seed)
-        index = cv2.flann.Index(np.ascontiguousarray(desc_t, np.float32), {"algorithm": 1, "trees": 4})
-        idx, d2 = index.knnSearch(np.ascontiguousarray(desc_q, np.float32), 2, params={"checks": 64})
+        forest = forest_t if forest_t is not None and forest_t.seed == seed else KdForest(desc_t, seed)
+        idx, d2 = forest.knn(desc_q, 2)
         d = np.sqrt(np.maximum(d2, 0)).astype(np.float32)
     else:  # exact: the two nearest neighbours as arrays, no per-match Python objects
         dtype = cv2.CV_32S if norm == cv2.NORM_HAMMING else cv2.CV_32F
@@ -38,19 +63,18 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
 
 
 def mutual_matches(matches: NDArray[np.int32], desc_q: NDArray, desc_t: NDArray, norm: int, seed: int = 0,
-                   flann_min_size: int = FLANN_MIN_SIZE) -> NDArray[np.bool_]:
+                   flann_min_size: int = FLANN_MIN_SIZE, forest_q: KdForest | None = None) -> NDArray[np.bool_]:
     """Mask of the (query, train) `matches` whose train descriptor has its query as nearest
     neighbour among all of `desc_q` (COLMAP's cross-check). Only the matched train descriptors
-    are searched, so it costs a fraction of the forward matching; the same k-d forest (seeded) or
-    brute force as `ratio_match`."""
+    are searched, so it costs a fraction of the forward matching; the same k-d forest (seeded;
+    `forest_q`: `desc_q`'s, built already) or brute force as `ratio_match`."""
     if len(matches) == 0:
         return np.zeros(0, bool)
     train, inverse = np.unique(matches[:, 1], return_inverse=True)
     queries = np.ascontiguousarray(desc_t[train])
     if norm != cv2.NORM_HAMMING and min(len(desc_q), len(queries)) >= flann_min_size:
-        cv2.setRNGSeed(seed)
-        index = cv2.flann.Index(np.ascontiguousarray(desc_q, np.float32), {"algorithm": 1, "trees": 4})
-        idx, _ = index.knnSearch(np.ascontiguousarray(queries, np.float32), 1, params={"checks": 64})
+        forest = forest_q if forest_q is not None and forest_q.seed == seed else KdForest(desc_q, seed)
+        idx, _ = forest.knn(queries, 1)
     else:
         dtype = cv2.CV_32S if norm == cv2.NORM_HAMMING else cv2.CV_32F
         _, idx = cv2.batchDistance(queries, desc_q, dtype, normType=norm, K=1)

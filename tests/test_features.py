@@ -120,3 +120,62 @@ def test_mutual_matches_keep_exactly_the_cross_checked_ratio_matches():
     approx = mutual_matches(m, d0, d1, cv.NORM_L2, seed=0, flann_min_size=10)
     assert (approx == truth).mean() > 0.97
     assert mutual_matches(m[:0], d0, d1, cv.NORM_L2).shape == (0,)
+
+
+def test_shared_forest_gives_the_matches_of_a_fresh_one_from_any_thread():
+    """An original's k-d forest (`Features.forest`), built once and searched by two threads at once,
+    returns exactly the matches `ratio_match` and `mutual_matches` find with a forest of their own;
+    a forest of another seed is not used."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2 as cv
+
+    from matching.features import detect
+    from matching.matching_utils import mutual_matches, ratio_match
+    from scenes.texture import procedural_texture
+
+    tex = procedural_texture(4.0, 3.0, 220.0, seed=7)
+    gray = cv.cvtColor(tex, cv.COLOR_BGR2GRAY) if tex.ndim == 3 else tex
+    f0 = detect(gray, SIFT)
+    views = [detect(cv.resize(gray, None, fx=s, fy=s, interpolation=cv.INTER_AREA), SIFT) for s in (0.9, 0.8, 0.7, 0.6)]
+    forest = f0.forest(seed=3)
+    assert f0.forest(seed=3) is forest and f0.forest(seed=4) is not forest
+
+    def both(fv: Features, shared: bool):
+        m, d = ratio_match(fv.descriptors, f0.descriptors, cv.NORM_L2, 0.8, seed=3, forest_t=forest if shared else None)
+        keep = mutual_matches(m[:, ::-1].copy(), f0.descriptors, fv.descriptors, cv.NORM_L2, seed=3,
+                              forest_q=forest if shared else None)
+        return m, d, keep
+
+    with ThreadPoolExecutor(2) as ex:
+        shared = list(ex.map(lambda fv: both(fv, True), views * 2))
+    for fv, (m, d, keep) in zip(views * 2, shared, strict=True):
+        m_ref, d_ref, keep_ref = both(fv, False)
+        assert len(m) > 100 and 0 < keep.sum()
+        np.testing.assert_array_equal(m, m_ref)
+        np.testing.assert_array_equal(d, d_ref)
+        np.testing.assert_array_equal(keep, keep_ref)
+    other = f0.forest(seed=4)  # the wrong seed's forest is ignored, not searched
+    m, _ = ratio_match(views[0].descriptors, f0.descriptors, cv.NORM_L2, 0.8, seed=3, forest_t=other)
+    np.testing.assert_array_equal(m, both(views[0], False)[0])
+
+
+def test_shared_forests_stay_within_their_memory_budget(monkeypatch):
+    """Past `FOREST_BUDGET_BYTES` the least recently used forest is dropped (and rebuilt on its next
+    use), and a forest goes with its features when they are freed."""
+    import gc
+
+    import matching.features as feats
+
+    monkeypatch.setattr(feats, "FOREST_BUDGET_BYTES", 2 * 2000 * feats._FOREST_BYTES_PER_DESCRIPTOR)
+    a, b, c = _features(2000), _features(2000), _features(2000)
+    fa = a.forest()
+    b.forest()
+    assert a.forest() is fa  # a is now the most recently used
+    c.forest()  # over budget: b goes, a stays
+    assert not b.forests and a.forests and c.forests
+    assert b.forest() is not None and not a.forests
+    before = len(feats._FOREST_LRU)
+    del c
+    gc.collect()
+    assert len(feats._FOREST_LRU) == before - 1
