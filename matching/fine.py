@@ -51,6 +51,10 @@ class FineConfig:
     """RootSIFT descriptors (L1-normalised, square-rooted), kept at OpenCV's L2 scale."""
     sift_features: int = 0
     """SIFT budget per image or view (0 = unlimited)."""
+    sift_contrast: float = 0.04
+    """OpenCV SIFT's contrast threshold in the simulated views (OpenCV's default). A matcher that
+    simulates nothing (`recon run --simulate needed`'s first pass) sets it to its originals' so
+    the target's features are one set (`TargetFeatures`) instead of two detections."""
     max_area_ratio: float = 1.0
     """(> 0) caps a view's zoom so its area is at most that multiple of the original's
     (`views.capped_view`); 0 renders the paper's zoom s = 1 + k*ds in full. The cap gives the
@@ -83,7 +87,7 @@ class FineConfig:
     @property
     def detector(self) -> DetectorConfig:
         """The simulated views' detector (OpenCV SIFT)."""
-        return DetectorConfig("sift", self.sift_features, self.root_sift)
+        return DetectorConfig("sift", self.sift_features, self.root_sift, contrast=self.sift_contrast)
 
     @property
     def originals_detector(self) -> DetectorConfig:

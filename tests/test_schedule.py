@@ -120,6 +120,24 @@ def test_first_pass_matches_only_the_originals_of_an_easy_pair(corner_scene):
     assert cfg.fine.original_cross_check
 
 
+def test_first_pass_detects_each_original_once_and_the_database_takes_that_set(corner_scene):
+    """Nothing is simulated in the first pass, so the target's features are the originals' one
+    OpenCV SIFT set (not also the views' default set), and the database stage's descriptors come
+    from the same set: one detection per image under `--simulate needed`, the default set otherwise."""
+    from matching.fine import target_features
+    from recon.config import MatchConfig
+    from recon.core.stages.database import descriptor_detector
+
+    a, b = "view_02.png", "view_03.png"
+    cfg = replace(_first_pass(), workers=1)
+    store = _store(corner_scene, a, b)
+    ExtraAffineMatcher(cfg).match(store, a, b)
+    assert list(target_features(store, b, cfg.fine).parts) == [cfg.fine.originals_detector.key] == ["sift0c0.02"]
+    assert descriptor_detector(MatchConfig(simulate="needed")) == cfg.fine.originals_detector
+    assert descriptor_detector(MatchConfig()).key == "sift0"  # `--simulate all`: the reference decision's set
+    assert descriptor_detector(MatchConfig(simulate="needed", first_pass_detector="colmap-sift-plain")).key == "sift0"
+
+
 def test_first_pass_cross_check_keeps_the_mutual_nearest_neighbours(corner_scene):
     """The first pass's originals keep a ratio-test match only when it is also the target
     keypoint's nearest neighbour (COLMAP's cross-check): fewer raw matches, each one mutual."""

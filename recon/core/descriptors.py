@@ -53,8 +53,9 @@ def sift_descriptors(gray_work: NDArray[np.uint8], kpts_full: NDArray[np.float32
                      ) -> tuple[NDArray[np.uint8], DescriptorStats]:
     """(N, 128) uint8 descriptors for the full-resolution keypoints `kpts_full` (see module doc),
     from the working-resolution gray photo `gray_work` (`scale_xy` = working / full size).
-    `detections`: OpenCV's default SIFT of `gray_work` (`DetectorConfig("sift")`) when the caller
-    has it already (the feature store's set of the original), else detected here."""
+    `detections`: an OpenCV SIFT set of `gray_work` (plain descriptors, any contrast threshold;
+    the feature store's set of the original, `recon.core.stages.database.descriptor_detector`),
+    else OpenCV's default SIFT detected here."""
     from scipy.spatial import cKDTree
 
     k = np.asarray(kpts_full, np.float64).reshape(-1, 2)

@@ -17,11 +17,15 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from recon.core.context import Run
 from recon.core.database import CAMERA_MODELS, database_is_sound, import_scene_images, write_keypoints_and_matches
 from recon.core.state import fingerprint
+
+if TYPE_CHECKING:
+    from matching.features import DetectorConfig
+    from recon.config import MatchConfig
 
 SQLITE_SIDE_FILES = ("-journal", "-wal", "-shm")
 
@@ -48,25 +52,38 @@ def with_descriptors(run: Run) -> bool:
     return (run.report.method or run.cfg.match.method) in SIFT_METHODS
 
 
+def descriptor_detector(cfg: MatchConfig) -> DetectorConfig:
+    """The OpenCV SIFT set of each original whose descriptors the database takes
+    (`recon.core.descriptors`): the one the matcher has in the feature store already (a resumed
+    run finds it in the feature cache). By default the reference decision's, OpenCV's default
+    SIFT; under `--simulate needed` with OpenCV's SIFT in the first pass, that pass's set (a lower
+    contrast threshold: the default set's keypoints and more), which every image has, where the
+    default set would be a second detection of every image that no pair simulates."""
+    from matching.features import DetectorConfig
+
+    if cfg.method == "extra-affine" and cfg.simulate == "needed" and cfg.first_pass_detector == "sift":
+        return DetectorConfig("sift", contrast=float(cfg.first_pass_contrast))
+    return DetectorConfig("sift")
+
+
 def write_sift_descriptors(run: Run, db_path: Path, ids: dict[str, int]) -> None:
     """SIFT descriptors of the original photos at each image's keypoints, one row per keypoint
-    (`recon.core.descriptors`), as COLMAP's SIFT descriptors. The originals' default SIFT comes
-    from the feature store: the matcher's reference decision has it already (and a resumed run
-    finds it in the feature cache)."""
+    (`recon.core.descriptors`), as COLMAP's SIFT descriptors, from the originals' SIFT set in the
+    feature store (`descriptor_detector`)."""
     import pycolmap
 
-    from matching.features import DetectorConfig
     from matching.viewfeatures import original_features
     from recon.core.descriptors import sift_descriptors
 
     d = run.data
+    det = descriptor_detector(run.cfg.match)
     db = pycolmap.Database.open(str(db_path))
     try:
         with pycolmap.DatabaseTransaction(db):
             for name, iid in ids.items():
                 im = d.scene.image(name)
                 desc, _ = sift_descriptors(d.store.image(name), d.keypoints[name], im.scale_xy,
-                                           original_features(d.store, name, DetectorConfig("sift")))
+                                           original_features(d.store, name, det))
                 db.write_descriptors(iid, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, desc))
     finally:
         db.close()
@@ -84,7 +101,9 @@ class Database:
     def key(self, run: Run) -> str | None:
         d = run.data
         model = run.cfg.database.camera_model  # in the key only when not the default: older caches stay valid
-        extra = ([model] if model != CAMERA_MODELS[0] else []) + (["sift-descriptors-1"] if with_descriptors(run) else [])
+        det = descriptor_detector(run.cfg.match).key
+        descriptors = ["sift-descriptors-1"] + ([det] if det != "sift0" else [])  # older caches stay valid
+        extra = ([model] if model != CAMERA_MODELS[0] else []) + (descriptors if with_descriptors(run) else [])
         return fingerprint("database", run.cfg.database.camera_mode, *extra,
                            [(im.name, im.digest) for im in d.scene.images],
                            *[d.keypoints[n] for n in d.scene.names], d.pairs, *d.merged.matches)

@@ -123,8 +123,11 @@ def first_pass_overrides(cfg: MatchConfig) -> dict[str, Any]:
     epipolar-guided round: a strong pair's originals already give hundreds to thousands of
     matches, and the round took a third of the pass (on fountain_P11 without it: 15673 instead
     of 17647 points, reprojection error 0.396 instead of 0.442 px, rotation error 0.233° instead
-    of 0.234°, total time 48 instead of 66-72 s; docs/decisions.md)."""
-    return {"simulate": False, "adaptive": False, "guided_epipolar": False, **_first_pass_originals(cfg)}
+    of 0.234°, total time 48 instead of 66-72 s; docs/decisions.md). With OpenCV's SIFT on the
+    originals the (unused) views' detector gets their contrast, so each original is detected once
+    (the database stage's descriptors take the same set: `descriptor_detector`)."""
+    same_set = {"fine__sift_contrast": float(cfg.first_pass_contrast)} if cfg.first_pass_detector == "sift" else {}
+    return {"simulate": False, "adaptive": False, "guided_epipolar": False, **_first_pass_originals(cfg), **same_set}
 
 
 def bridge_overrides(cfg: MatchConfig) -> dict[str, Any]:
