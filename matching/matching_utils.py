@@ -28,6 +28,14 @@ class KdForest:
     def __len__(self) -> int:
         return len(self.data)
 
+    def fits(self, desc: NDArray, seed: int) -> bool:
+        """Whether this is the forest a search of `desc` with `seed` would build (the same array,
+        or one of its shape with the same first and last rows: a cheap check, not a hash)."""
+        if self.seed != int(seed) or self.data.shape != np.shape(desc):
+            return False
+        return self.data is desc or len(desc) == 0 or (np.array_equal(self.data[0], desc[0])
+                                                       and np.array_equal(self.data[-1], desc[-1]))
+
     def knn(self, queries: NDArray, k: int) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
         """(indices, squared L2 distances), each (len(queries), k), nearest first."""
         return self._index.knnSearch(np.ascontiguousarray(queries, np.float32), k, params={"checks": FLANN_CHECKS})
@@ -43,14 +51,14 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
     several times faster with nearly the same matches (docs/decisions.md).
     OpenCV's per-thread RNG is seeded just before the index is built, so results are
     deterministic whichever thread runs them. `forest_t`: `desc_t`'s forest built already
-    (`Features.forest`), used when the forest is the one this call would build (same seed).
+    (`Features.forest`), used when it is the one this call would build (`KdForest.fits`).
     """
     if len(desc_q) < 1 or len(desc_t) < 2:
         return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
     if norm != cv2.NORM_HAMMING and min(len(desc_q), len(desc_t)) >= flann_min_size:
         # the k-d forest FlannBasedMatcher builds, searched for arrays (no DMatch objects: the same
         # neighbours, tests/test_features.py); FLANN returns squared L2 distances
-        forest = forest_t if forest_t is not None and forest_t.seed == seed else KdForest(desc_t, seed)
+        forest = forest_t if forest_t is not None and forest_t.fits(desc_t, seed) else KdForest(desc_t, seed)
         idx, d2 = forest.knn(desc_q, 2)
         d = np.sqrt(np.maximum(d2, 0)).astype(np.float32)
     else:  # exact: the two nearest neighbours as arrays, no per-match Python objects
@@ -73,7 +81,7 @@ def mutual_matches(matches: NDArray[np.int32], desc_q: NDArray, desc_t: NDArray,
     train, inverse = np.unique(matches[:, 1], return_inverse=True)
     queries = np.ascontiguousarray(desc_t[train])
     if norm != cv2.NORM_HAMMING and min(len(desc_q), len(queries)) >= flann_min_size:
-        forest = forest_q if forest_q is not None and forest_q.seed == seed else KdForest(desc_q, seed)
+        forest = forest_q if forest_q is not None and forest_q.fits(desc_q, seed) else KdForest(desc_q, seed)
         idx, _ = forest.knn(queries, 1)
     else:
         dtype = cv2.CV_32S if norm == cv2.NORM_HAMMING else cv2.CV_32F

@@ -125,7 +125,7 @@ def test_mutual_matches_keep_exactly_the_cross_checked_ratio_matches():
 def test_shared_forest_gives_the_matches_of_a_fresh_one_from_any_thread():
     """An original's k-d forest (`Features.forest`), built once and searched by two threads at once,
     returns exactly the matches `ratio_match` and `mutual_matches` find with a forest of their own;
-    a forest of another seed is not used."""
+    a forest of another seed or of other descriptors is not used."""
     from concurrent.futures import ThreadPoolExecutor
 
     import cv2 as cv
@@ -155,9 +155,9 @@ def test_shared_forest_gives_the_matches_of_a_fresh_one_from_any_thread():
         np.testing.assert_array_equal(m, m_ref)
         np.testing.assert_array_equal(d, d_ref)
         np.testing.assert_array_equal(keep, keep_ref)
-    other = f0.forest(seed=4)  # the wrong seed's forest is ignored, not searched
-    m, _ = ratio_match(views[0].descriptors, f0.descriptors, cv.NORM_L2, 0.8, seed=3, forest_t=other)
-    np.testing.assert_array_equal(m, both(views[0], False)[0])
+    for other in (f0.forest(seed=4), views[1].forest(seed=3)):  # another seed's or set's: not searched
+        m, _ = ratio_match(views[0].descriptors, f0.descriptors, cv.NORM_L2, 0.8, seed=3, forest_t=other)
+        np.testing.assert_array_equal(m, both(views[0], False)[0])
 
 
 def test_shared_forests_stay_within_their_memory_budget(monkeypatch):
