@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .features import DetectorConfig, Features
-from .matching_utils import FLANN_MIN_SIZE, KdForest, mutual_matches, ratio_match, unique_train
+from .matching_utils import mutual_matches, ratio_match, unique_train
 from .store import FeatureStore
 from .types import CoarseScore, ViewParams
 from .viewfeatures import original_features, view_features
@@ -165,14 +165,6 @@ def select_fine_views(ranked: list[CoarseScore], k: int, include_original: bool 
     return out
 
 
-def forest_of(f: Features, seed: int) -> KdForest | None:
-    """`f`'s shared k-d forest (L2) when `ratio_match` may search it with FLANN (at least
-    `FLANN_MIN_SIZE` descriptors), else None."""
-    if len(f) < FLANN_MIN_SIZE:
-        return None
-    return f.forest(seed)
-
-
 def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParams],
                cfg: FineConfig, executor: Executor | None = None, seed: int = 0) -> FineMatches:
     """SIFT of each view of `ref` ratio-matched against the original `target` (features of the
@@ -187,9 +179,9 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
         ft, offset = tf.part(det)
         # the target original's forest is shared by all views and pairs; so is the reference
         # original's, which the identity view's cross-check searches
-        m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio, seed, forest_t=forest_of(ft, seed))
+        m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio, seed, forest_t=ft.forest)
         if cfg.original_cross_check and view.is_identity and len(m):
-            keep = mutual_matches(m, fv.descriptors, ft.descriptors, cv2.NORM_L2, seed, forest_q=forest_of(fv, seed))
+            keep = mutual_matches(m, fv.descriptors, ft.descriptors, cv2.NORM_L2, seed, forest_q=fv.forest)
             m, d = m[keep], d[keep]
         if offset and len(m):
             m = m.copy()

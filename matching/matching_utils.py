@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -41,8 +43,17 @@ class KdForest:
         return self._index.knnSearch(np.ascontiguousarray(queries, np.float32), k, params={"checks": FLANN_CHECKS})
 
 
+def _shared_or_own(provider: Callable[[int], KdForest] | None, desc: NDArray, seed: int) -> KdForest:
+    """The provider's forest for `seed` when it indexes `desc`, else a forest built for this search."""
+    if provider is not None:
+        forest = provider(seed)
+        if forest.fits(desc, seed):
+            return forest
+    return KdForest(desc, seed)
+
+
 def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75, seed: int = 0,
-                flann_min_size: int = FLANN_MIN_SIZE, forest_t: KdForest | None = None
+                flann_min_size: int = FLANN_MIN_SIZE, forest_t: Callable[[int], KdForest] | None = None
                 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Lowe's ratio test: (K, 2) (query, train) indices and the nearest distances.
 
@@ -50,15 +61,16 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
     FLANN k-d forest for float descriptors when both sides exceed `flann_min_size`, where it is
     several times faster with nearly the same matches (docs/decisions.md).
     OpenCV's per-thread RNG is seeded just before the index is built, so results are
-    deterministic whichever thread runs them. `forest_t`: `desc_t`'s forest built already
-    (`Features.forest`), used when it is the one this call would build (`KdForest.fits`).
+    deterministic whichever thread runs them. `forest_t`: gives `desc_t`'s forest for a seed, built
+    once and shared (`Features.forest`), asked only when FLANN searches and used only when it is
+    the forest this call would build (`KdForest.fits`).
     """
     if len(desc_q) < 1 or len(desc_t) < 2:
         return np.zeros((0, 2), np.int32), np.zeros(0, np.float32)
     if norm != cv2.NORM_HAMMING and min(len(desc_q), len(desc_t)) >= flann_min_size:
         # the k-d forest FlannBasedMatcher builds, searched for arrays (no DMatch objects: the same
         # neighbours, tests/test_features.py); FLANN returns squared L2 distances
-        forest = forest_t if forest_t is not None and forest_t.fits(desc_t, seed) else KdForest(desc_t, seed)
+        forest = _shared_or_own(forest_t, desc_t, seed)
         idx, d2 = forest.knn(desc_q, 2)
         d = np.sqrt(np.maximum(d2, 0)).astype(np.float32)
     else:  # exact: the two nearest neighbours as arrays, no per-match Python objects
@@ -71,17 +83,18 @@ def ratio_match(desc_q: NDArray, desc_t: NDArray, norm: int, ratio: float = 0.75
 
 
 def mutual_matches(matches: NDArray[np.int32], desc_q: NDArray, desc_t: NDArray, norm: int, seed: int = 0,
-                   flann_min_size: int = FLANN_MIN_SIZE, forest_q: KdForest | None = None) -> NDArray[np.bool_]:
+                   flann_min_size: int = FLANN_MIN_SIZE, forest_q: Callable[[int], KdForest] | None = None
+                   ) -> NDArray[np.bool_]:
     """Mask of the (query, train) `matches` whose train descriptor has its query as nearest
     neighbour among all of `desc_q` (COLMAP's cross-check). Only the matched train descriptors
     are searched, so it costs a fraction of the forward matching; the same k-d forest (seeded;
-    `forest_q`: `desc_q`'s, built already) or brute force as `ratio_match`."""
+    `forest_q`: gives `desc_q`'s, as `ratio_match`'s `forest_t`) or brute force as `ratio_match`."""
     if len(matches) == 0:
         return np.zeros(0, bool)
     train, inverse = np.unique(matches[:, 1], return_inverse=True)
     queries = np.ascontiguousarray(desc_t[train])
     if norm != cv2.NORM_HAMMING and min(len(desc_q), len(queries)) >= flann_min_size:
-        forest = forest_q if forest_q is not None and forest_q.fits(desc_q, seed) else KdForest(desc_q, seed)
+        forest = _shared_or_own(forest_q, desc_q, seed)
         idx, _ = forest.knn(queries, 1)
     else:
         dtype = cv2.CV_32S if norm == cv2.NORM_HAMMING else cv2.CV_32F
