@@ -136,6 +136,10 @@ def test_first_pass_detects_each_original_once_and_the_database_takes_that_set(c
     assert descriptor_detector(MatchConfig(simulate="needed")) == cfg.fine.originals_detector
     assert descriptor_detector(MatchConfig()).key == "sift0"  # `--simulate all`: the reference decision's set
     assert descriptor_detector(MatchConfig(simulate="needed", first_pass_detector="colmap-sift-plain")).key == "sift0"
+    budget = MatchConfig(simulate="needed", matcher={"fine": {"sift_features": 5000}})
+    assert descriptor_detector(budget).key == "sift5000c0.02"  # the first pass's own set, options and all
+    rooted = MatchConfig(simulate="needed", matcher={"fine": {"root_sift": True}})
+    assert descriptor_detector(rooted).key == "sift0"  # the database's descriptors are rooted from plain ones
 
 
 def test_first_pass_cross_check_keeps_the_mutual_nearest_neighbours(corner_scene):

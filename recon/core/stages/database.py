@@ -58,11 +58,15 @@ def descriptor_detector(cfg: MatchConfig) -> DetectorConfig:
     run finds it in the feature cache). By default the reference decision's, OpenCV's default
     SIFT; under `--simulate needed` with OpenCV's SIFT in the first pass, that pass's set (a lower
     contrast threshold: the default set's keypoints and more), which every image has, where the
-    default set would be a second detection of every image that no pair simulates."""
+    default set would be a second detection of every image that no pair simulates (unless that
+    set is RootSIFT: the database roots plain descriptors itself)."""
     from matching.features import DetectorConfig
+    from recon.core.stages.match import first_pass_overrides, make_matcher
 
     if cfg.method == "extra-affine" and cfg.simulate == "needed" and cfg.first_pass_detector == "sift":
-        return DetectorConfig("sift", contrast=float(cfg.first_pass_contrast))
+        det: DetectorConfig = make_matcher(cfg, extra=first_pass_overrides(cfg)).cfg.fine.originals_detector  # type: ignore[attr-defined]
+        if not det.root_sift:
+            return det
     return DetectorConfig("sift")
 
 
