@@ -105,8 +105,10 @@ class Database:
     def key(self, run: Run) -> str | None:
         d = run.data
         model = run.cfg.database.camera_model  # in the key only when not the default: older caches stay valid
-        det = descriptor_detector(run.cfg.match).key
-        descriptors = ["sift-descriptors-1"] + ([det] if det != "sift0" else [])  # older caches stay valid
+        from matching.features import DetectorConfig
+
+        det = descriptor_detector(run.cfg.match)  # named only when not the default: older caches stay valid
+        descriptors = ["sift-descriptors-1"] + ([det.key] if det != DetectorConfig("sift") else [])
         extra = ([model] if model != CAMERA_MODELS[0] else []) + (descriptors if with_descriptors(run) else [])
         return fingerprint("database", run.cfg.database.camera_mode, *extra,
                            [(im.name, im.digest) for im in d.scene.images],
