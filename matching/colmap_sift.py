@@ -10,7 +10,8 @@ Conventions, converted here (measured on rendered Gaussian blobs, tests/test_col
 
 * position: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), this package (OpenCV) at
   (0, 0), so x_cv = x_colmap - 0.5. (OpenCV's own SIFT reports keypoints about +0.25 px off in
-  x and y: it doubles the image with a half-pixel shift unless `enable_precise_upscale`; COLMAP's
+  x and y: it doubles the image with a half-pixel shift unless `enable_precise_upscale`;
+  `matching.features.detect` subtracts that shift, `DetectorConfig.centre_keypoints`; COLMAP's
   are unbiased.)
 * size: OpenCV's `KeyPoint.size` is a diameter, about 2x COLMAP's scale (sigma), so size = 2 * scale;
   angle: degrees of COLMAP's orientation (radians, same y-down sense as OpenCV's), in [0, 360).

@@ -42,6 +42,10 @@ DetectorName = Literal["sift", "orb", "colmap-sift", "colmap-sift-affine", "colm
 COLMAP_DETECTORS = ("colmap-sift", "colmap-sift-affine", "colmap-sift-plain")
 """The detectors computed by COLMAP (`matching.colmap_sift`), not OpenCV."""
 
+OPENCV_SIFT_UPSCALE_SHIFT_PX = 0.25
+"""How far OpenCV's SIFT (without `enable_precise_upscale`) places keypoints off the pixel-centre
+frame, in x and in y, px of the detected image (`DetectorConfig.centre_keypoints`)."""
+
 
 @dataclass(frozen=True)
 class DetectorConfig:
@@ -65,6 +69,17 @@ class DetectorConfig:
     """OpenCV SIFT only: `enable_precise_upscale` (its doubled first octave without the half-pixel
     shift that places keypoints 0.25 px off; docs/decisions.md)."""
 
+    centre_keypoints: bool = True
+    """OpenCV SIFT without `precise_upscale` only: subtract the 0.25 px its doubled first octave
+    adds to every keypoint's x and y. OpenCV doubles the image with pixel corners aligned
+    (x_up = 2 x + 0.5) but reports x_up / 2, so its keypoints sit +0.25 px off the pixel-centre
+    frame that COLMAP's SIFT, the views' warps and the database use (measured on fountain_P11:
+    +0.247 / +0.249 px against COLMAP's keypoints of the same image). Harmless within one pair
+    (a constant shift the geometry absorbs), it is not where one image's observations mix
+    detectors (the covariant originals and the views' SIFT in a scene) or views (the shift mapped
+    back through a view of tilt t grows to 0.25 t px). Detections and descriptors are unchanged;
+    False keeps OpenCV's positions (docs/decisions.md, "SIFT keypoints at pixel centres")."""
+
     dsp_scales: int = 10
     """colmap-sift only: the support sizes its domain-size pooling averages over (COLMAP's
     `dsp_num_scales`, default 10; fewer is cheaper: 5 takes 8.0 instead of 12.4 CPU s at 1600 px)."""
@@ -74,7 +89,13 @@ class DetectorConfig:
         contrast = "" if self.contrast == 0.04 else f"c{self.contrast:g}"
         dsp = "" if self.dsp_scales == 10 or self.name != "colmap-sift" else f"d{self.dsp_scales}"
         precise = "p" if self.precise_upscale and self.name == "sift" else ""
-        return f"{self.name}{self.max_features}{'r' if self.root_sift else ''}{contrast}{dsp}{precise}"
+        biased = "b" if self.shifted_by_upscale and not self.centre_keypoints else ""
+        return f"{self.name}{self.max_features}{'r' if self.root_sift else ''}{contrast}{dsp}{precise}{biased}"
+
+    @property
+    def shifted_by_upscale(self) -> bool:
+        """Whether the detector itself places keypoints +0.25 px off (OpenCV SIFT, plain upscale)."""
+        return self.name == "sift" and not self.precise_upscale
 
     @property
     def norm(self) -> int:
@@ -203,6 +224,8 @@ def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] 
     else:
         kps, desc = det.detectAndCompute(img, mask)
     f = from_keypoints(kps, desc, 32 if cfg.name == "orb" else 128, np.uint8 if cfg.name == "orb" else np.float32)
+    if cfg.shifted_by_upscale and cfg.centre_keypoints and len(f):
+        f.kpts -= np.float32(OPENCV_SIFT_UPSCALE_SHIFT_PX)
     if cfg.name == "sift" and cfg.root_sift and len(f):
         d = f.descriptors / np.maximum(f.descriptors.sum(axis=1, keepdims=True), 1e-7)
         f.descriptors = np.sqrt(d) * 512.0  # keep OpenCV's L2 scale (~512) for Eq. 1 and ratios

@@ -27,6 +27,11 @@ from numpy.typing import NDArray
 
 from .features import Features
 
+CACHE_VERSION = "2"
+"""Part of every disk cache entry's name and stored key; bumped when what a key computes changes
+(2: OpenCV SIFT keypoints at pixel centres, `DetectorConfig.centre_keypoints`), so entries of an
+older version are recomputed, never reused."""
+
 
 class FeatureStore:
     """Images by name and everything computed from them, computed once."""
@@ -105,7 +110,7 @@ class FeatureStore:
         if self.cache_dir is None:
             return None
         digest = self._digests[name]
-        h = hashlib.sha1(key.encode()).hexdigest()[:12]
+        h = hashlib.sha1(_versioned(key).encode()).hexdigest()[:12]
         return self.cache_dir / digest[:2] / f"{digest}_{h}.npz"
 
     def _load(self, name: str, key: str) -> Features | None:
@@ -114,7 +119,7 @@ class FeatureStore:
             return None
         try:
             with np.load(p) as z:
-                if str(z["key"]) != key:
+                if str(z["key"]) != _versioned(key):
                     return None
                 resp = z["responses"] if "responses" in z.files else None
                 frames = z["frames"] if "frames" in z.files else None
@@ -132,7 +137,7 @@ class FeatureStore:
             extra["frames"] = f.frames
         try:
             p.parent.mkdir(parents=True, exist_ok=True)
-            np.savez(tmp, key=np.array(key), kpts=f.kpts, sizes=f.sizes, angles=f.angles,
+            np.savez(tmp, key=np.array(_versioned(key)), kpts=f.kpts, sizes=f.sizes, angles=f.angles,
                      descriptors=f.descriptors, **extra)
             os.replace(tmp, p)
         except OSError as e:  # see module doc: keep computing in memory
@@ -147,3 +152,8 @@ class FeatureStore:
                     tmp.unlink()
                 except OSError:
                     pass
+
+
+def _versioned(key: str) -> str:
+    """The key as stored on disk: `CACHE_VERSION`-prefixed."""
+    return f"v{CACHE_VERSION}:{key}"

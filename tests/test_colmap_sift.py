@@ -85,7 +85,7 @@ def test_keypoints_are_in_opencv_pixel_convention(blobs):
     # COLMAP's +0.5 convention removed: the blob centres to a small fraction of a pixel
     assert np.all(np.abs(np.median(off, axis=0)) < 0.1)
     assert np.mean(np.linalg.norm(off, axis=1)) < 0.2
-    # and on the same blobs as OpenCV's SIFT (which reads about +0.25 px off, see the module doc)
+    # and on the same blobs as OpenCV's SIFT (centred by `detect`, see the module doc)
     cv_kpts = detect(img, DetectorConfig("sift")).kpts
     on_blob = f.kpts[np.linalg.norm(f.kpts[:, None, :] - centres[None], axis=2).min(axis=1) < 1.5]
     d = np.linalg.norm(on_blob[:, None, :] - cv_kpts[None, :, :], axis=2).min(axis=1)
@@ -302,18 +302,26 @@ def test_fewer_pooling_scales_change_descriptors_not_keypoints(blobs):
     assert det.dsp_scales == 5 and det.key.endswith("d5")
 
 
-def test_opencv_sift_precise_upscale_removes_the_quarter_pixel_shift():
+def test_opencv_sift_keypoints_sit_on_pixel_centres():
     """OpenCV's SIFT doubles its input with a half-pixel shift: keypoints of Gaussian blobs land
-    about +0.25 px off in x and y; `precise_upscale` (`FineConfig.original_precise_upscale` on
-    the originals) places them on the centres, and is its own feature-cache key."""
+    about +0.25 px off in x and y (`centre_keypoints=False` keeps that); by default `detect`
+    subtracts the shift, same detections and descriptors, and `precise_upscale` places them on
+    the centres by another upscale. Each is its own feature-cache key."""
     from matching.features import detect
 
     img, centres = _blobs()
-    default, precise = DetectorConfig("sift", contrast=0.02), DetectorConfig("sift", contrast=0.02, precise_upscale=True)
-    shift = np.median(_offsets(detect(img, default).kpts, centres), axis=0)
+    biased = DetectorConfig("sift", contrast=0.02, centre_keypoints=False)
+    default = DetectorConfig("sift", contrast=0.02)
+    precise = DetectorConfig("sift", contrast=0.02, precise_upscale=True)
+    f_biased, f_default = detect(img, biased), detect(img, default)
+    shift = np.median(_offsets(f_biased.kpts, centres), axis=0)
+    centred = np.median(_offsets(f_default.kpts, centres), axis=0)
     fixed = np.median(_offsets(detect(img, precise).kpts, centres), axis=0)
     assert np.all(shift > 0.15), shift
+    assert np.all(np.abs(centred) < 0.05), centred
     assert np.all(np.abs(fixed) < 0.08), fixed
-    assert default.key != precise.key
+    np.testing.assert_allclose(f_biased.kpts - f_default.kpts, 0.25, atol=1e-4)
+    np.testing.assert_array_equal(f_biased.descriptors, f_default.descriptors)
+    assert len({biased.key, default.key, precise.key}) == 3
     assert FineConfig(original_precise_upscale=True).originals_detector.precise_upscale
     assert not FineConfig(original_precise_upscale=True).detector.precise_upscale  # the views keep OpenCV's default

@@ -23,7 +23,7 @@ from matching.types import CoarseScore, PairResult, ViewParams
 from recon.core.jsonio import replaced_atomically
 from recon.core.scene import SceneImage, to_full_res
 
-PAIR_CACHE_VERSION = "1"
+PAIR_CACHE_VERSION = "2"  # 2: OpenCV SIFT keypoints at pixel centres (matching.features.DetectorConfig.centre_keypoints)
 
 
 def _affine_full_from_work(scale_xy: tuple[float, float]) -> NDArray[np.float64]:
