@@ -148,7 +148,10 @@ def test_guided_round_under_h_keeps_precision_and_inliers(graf, settled):
     step = GuidedHomography()
     assert step.applies(ctx, fast, first)
     guided = step.run(ctx, fast, first)
-    assert guided is not first and guided.num_inliers >= first.num_inliers
+    # the round replaces the first result only by one with as many inliers (on graf 1-2 the two
+    # are within 1 %: 1059 guided against 1071, so the first is kept; 1070 against 1068 before
+    # OpenCV's SIFT keypoints were centred)
+    assert guided.num_inliers >= first.num_inliers >= 1000
     assert precision(guided, H).precision >= 0.95
     assert guided.reference_reason == first.reference_reason and guided.best_views == fast.views
     assert not GuidedEpipolar().applies(ctx, fast, first)  # under H, never also under F
