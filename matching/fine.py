@@ -76,6 +76,9 @@ class FineConfig:
     original_precise_upscale: bool = False
     """OpenCV SIFT's `enable_precise_upscale` on the originals when `original_detector` = "sift"
     (`DetectorConfig.precise_upscale`)."""
+    centre_keypoints: bool = True
+    """OpenCV SIFT's keypoints (views and originals) moved by -0.25 px onto pixel centres
+    (`DetectorConfig.centre_keypoints`); False keeps OpenCV's positions, as before 2026-12-02."""
     original_dsp_scales: int = 10
     """Support sizes of "colmap-sift"'s domain-size pooling (`DetectorConfig.dsp_scales`)."""
     original_cross_check: bool = False
@@ -87,7 +90,8 @@ class FineConfig:
     @property
     def detector(self) -> DetectorConfig:
         """The simulated views' detector (OpenCV SIFT)."""
-        return DetectorConfig("sift", self.sift_features, self.root_sift, contrast=self.sift_contrast)
+        return DetectorConfig("sift", self.sift_features, self.root_sift, contrast=self.sift_contrast,
+                              centre_keypoints=self.centre_keypoints)
 
     @property
     def originals_detector(self) -> DetectorConfig:

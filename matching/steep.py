@@ -17,6 +17,8 @@ the reference first, then the other image while the first verifies fewer than `m
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -109,8 +111,7 @@ def antialias_blur(img: NDArray[np.uint8], J_t_from_r: NDArray[np.float64]) -> N
 
 def rectify_detector(ctx: MatchContext, cfg: SteepConfig) -> DetectorConfig:
     """The fine stage's SIFT with the rectified rounds' lower contrast threshold."""
-    fine = ctx.cfg.fine.detector
-    return DetectorConfig(fine.name, fine.max_features, fine.root_sift, cfg.rectify_contrast)
+    return dataclasses.replace(ctx.cfg.fine.detector, contrast=cfg.rectify_contrast)
 
 
 def rectified_features(ctx: MatchContext, ref: int, H_t_from_r: NDArray[np.float64],

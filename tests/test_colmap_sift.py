@@ -323,5 +323,9 @@ def test_opencv_sift_keypoints_sit_on_pixel_centres():
     np.testing.assert_allclose(f_biased.kpts - f_default.kpts, 0.25, atol=1e-4)
     np.testing.assert_array_equal(f_biased.descriptors, f_default.descriptors)
     assert len({biased.key, default.key, precise.key}) == 3
+    # `--set matcher.fine.centre_keypoints=false` reaches the views' and the originals' detectors
+    old = FineConfig(centre_keypoints=False, original_detector="sift")
+    assert not old.detector.centre_keypoints and not old.originals_detector.centre_keypoints
+    assert old.detector.key.endswith("b") and not FineConfig().detector.key.endswith("b")
     assert FineConfig(original_precise_upscale=True).originals_detector.precise_upscale
     assert not FineConfig(original_precise_upscale=True).detector.precise_upscale  # the views keep OpenCV's default
