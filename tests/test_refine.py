@@ -183,5 +183,7 @@ def test_refinement_moves_graf_1_5_points_closer_to_the_truth(shared_data):
         ref0, moved = refine_matches(img0, img1, p0, p1, res.H_1_from_0, RefineConfig())
         after = reprojection_errors(H_gt, ref0, p1)
     assert moved.mean() > 0.8
-    assert np.median(after) < 0.8 * np.median(before), (np.median(before), np.median(after))
+    # measured: median 0.547 -> 0.449 px (0.78 -> 0.47 px before OpenCV's SIFT keypoints were
+    # centred, which took a part of the error refinement used to remove)
+    assert np.median(after) < 0.87 * np.median(before), (np.median(before), np.median(after))
     assert (after < 3**0.5).sum() > (before < 3**0.5).sum()
