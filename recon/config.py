@@ -297,6 +297,14 @@ class SfmConfig:
     """incremental (COLMAP's incremental mapper, wide-baseline options) or global (GLOMAP through
     pycolmap.global_mapping; see docs/decisions.md for the measured comparison)."""
 
+    scale_thresholds: bool = False
+    """True: multiply the mapper's pixel thresholds (reprojection filters, triangulation, initial
+    pair, absolute pose) by the working-to-full-resolution factor (`recon.core.sfm.threshold_scale`,
+    7.7 px instead of 4 on 3072 px photos matched at 1600 px). False (default): COLMAP's values in
+    full-resolution px, as stock COLMAP applies them to its keypoints, also detected at the working
+    size: the scaled filter kept observations 4-7.7 px off and measured higher reprojection and
+    rotation errors (docs/decisions.md, "Mapper thresholds in full-resolution px")."""
+
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS
 

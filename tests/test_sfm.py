@@ -165,3 +165,17 @@ def test_point_cloud_and_stats_of_no_model(tmp_path):
     assert model_stats(None) == dict(registered_images=0, num_points3D=0, mean_track_length=0.0,
                                      mean_reprojection_error=None, mean_observations_per_image=0.0)
     assert registered_names(None) == []
+
+
+def test_the_pipeline_maps_with_colmaps_full_resolution_thresholds_unless_asked_to_scale():
+    """Photos matched at half size (px_scale 2): the mapper keeps COLMAP's 4 px reprojection
+    filter, as stock does; `sfm.scale_thresholds` doubles it."""
+    from recon.config import build_run_config
+    from recon.core.stages.sfm import mapping_options as stage_options
+
+    plain = stage_options(build_run_config(), px_scale=2.0)
+    scaled = stage_options(build_run_config(settings=["sfm.scale_thresholds=true"]), px_scale=2.0)
+    assert plain.mapper.filter_max_reproj_error == pytest.approx(4.0)
+    assert plain.triangulation.complete_max_reproj_error == pytest.approx(4.0)
+    assert scaled.mapper.filter_max_reproj_error == pytest.approx(8.0)
+    assert scaled.mapper.abs_pose_max_error == pytest.approx(24.0)

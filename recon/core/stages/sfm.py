@@ -7,7 +7,8 @@ registration step is an `on_sfm_step` event (the live model) and a step of the p
 Key: the verify stage's key and every mapper option (pycolmap's `todict()`, which holds the
 seed). Reused when unchanged and `sparse/0` can be read; the number of models, their sizes and
 the registration order come back from the state record (a reused model has no growth events).
-Options: `sfm.num_threads`, `seed`; the mapper's tuned options are in `recon.core.sfm`.
+Options: `sfm.num_threads`, `sfm.scale_thresholds`, `seed`; the mapper's tuned options are in
+`recon.core.sfm`.
 """
 
 from __future__ import annotations
@@ -27,9 +28,9 @@ from recon.core.state import fingerprint
 
 
 def mapping_options(cfg: RunConfig, px_scale: float) -> pycolmap.IncrementalPipelineOptions:
-    """`recon.core.sfm.mapping_options` for this run: seeded, pixel thresholds scaled by the
-    working-to-full-resolution factor `px_scale`."""
-    return sfm.mapping_options(cfg.seed, cfg.sfm.num_threads, px_scale)
+    """`recon.core.sfm.mapping_options` for this run: seeded, pixel thresholds in full-resolution
+    px, or scaled by the working-to-full-resolution factor `px_scale` with `sfm.scale_thresholds`."""
+    return sfm.mapping_options(cfg.seed, cfg.sfm.num_threads, px_scale if cfg.sfm.scale_thresholds else 1.0)
 
 
 def read_model(model_dir: Path) -> pycolmap.Reconstruction | None:
