@@ -301,9 +301,10 @@ class SfmConfig:
     """True: multiply the mapper's pixel thresholds (reprojection filters, triangulation, initial
     pair, absolute pose) by the working-to-full-resolution factor (`recon.core.sfm.threshold_scale`,
     7.7 px instead of 4 on 3072 px photos matched at 1600 px). False (default): COLMAP's values in
-    full-resolution px, as stock COLMAP applies them to its keypoints, also detected at the working
-    size: the scaled filter kept observations 4-7.7 px off and measured higher reprojection and
-    rotation errors (docs/decisions.md, "Mapper thresholds in full-resolution px")."""
+    full-resolution px, as COLMAP's own pipeline applies them to its keypoints, also detected at
+    the working size (the stock comparison, `recon.eval.stock`, maps with these same options): the
+    scaled filter kept observations 4-7.7 px off and measured higher reprojection and rotation
+    errors (docs/decisions.md, "Mapper thresholds in full-resolution px")."""
 
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS

@@ -42,9 +42,10 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   the truth; without one (prior 1.2 * max(w, h), here 33 % too long) it is off by 6 deg.
 * thresholds in pixels (`init_max_error`, `abs_pose_max_error`, `filter_max_reproj_error`,
   triangulation reprojection errors) are multiplied by `px_scale`, the working-to-full-resolution
-  factor (capped at 3). The pipeline passes 1 (COLMAP's values in full-resolution px, as stock
-  applies them) unless `sfm.scale_thresholds`: scaling them let observations 4-7.7 px off stay in
-  the model on 3072 px photos and measured worse (`recon.config.SfmConfig.scale_thresholds`).
+  factor (capped at 3). The pipeline (ours and the stock comparison alike) passes 1, COLMAP's
+  values in full-resolution px as COLMAP's own pipeline applies them, unless
+  `sfm.scale_thresholds`: scaling them let observations 4-7.7 px off stay in the model on 3072 px
+  photos and measured worse (`recon.config.SfmConfig.scale_thresholds`).
 * `random_seed`: seeds every RANSAC in the mapper; bundle adjustment with several threads can
   still differ in the last digits (Ceres sums in thread order), so results are reproducible
   for a fixed seed up to float noise, and bit-exact only with `num_threads=1`.

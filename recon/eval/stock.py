@@ -23,9 +23,10 @@ Stages (see `recon.core.stages` for the shared ones):
   the pairs are exactly those `recon run` matches (COLMAP's own sequential matcher would also
   add quadratic-overlap pairs). COLMAP matches and verifies in one call, so there is no
   separate `verify` stage (and no `tracks`: stock keypoints are per image already);
-* `sfm`, `export`: ours (`recon.core.sfm.mapping_options` with the same working-to-full-resolution
-  `px_scale`: COLMAP's SIFT runs on the image downscaled to `max_size` and writes keypoints in
-  full-resolution pixels, exactly like our matcher), without points.ply.
+* `sfm`, `export`: ours (`recon.core.stages.sfm.mapping_options`: the same mapper options and
+  pixel thresholds, COLMAP's full-resolution ones unless `sfm.scale_thresholds`; COLMAP's SIFT
+  runs on the image downscaled to `max_size` and writes keypoints in full-resolution pixels,
+  exactly like our matcher), without points.ply.
 
 Presets. `default`: COLMAP's SIFT defaults with `FeatureExtractionOptions.max_image_size =
 max_size`. `high`: also `sift.estimate_affine_shape` and `sift.domain_size_pooling` (COLMAP's
