@@ -39,6 +39,7 @@ import multiprocessing
 import signal
 import sys
 import threading
+import weakref
 from collections.abc import Iterator
 from concurrent.futures import CancelledError, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -81,8 +82,10 @@ Frames = tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], ND
 
 _pool: ProcessPoolExecutor | None = None
 _pool_guard = threading.Lock()
-_users: set[int] = set()  # threads that have extracted through the open block's children
-_abandoned: set[int] = set()  # ...of a block that ended with an exception: they stop, not fall back
+# Threads by object, not by `threading.get_ident()`: the interpreter reuses a finished thread's
+# ident, so a later thread (a Dask worker's, the next run's) would inherit a stale mark
+_users: weakref.WeakSet[threading.Thread] = weakref.WeakSet()  # threads that extracted through the open block's children
+_abandoned: weakref.WeakSet[threading.Thread] = weakref.WeakSet()  # ...of a block that ended with an exception: they stop
 _in_process = threading.Lock()  # in this process pycolmap holds the GIL: one extraction at a time
 
 
@@ -165,7 +168,7 @@ def detect_colmap_sift(img: NDArray[np.uint8], max_features: int = 0, mask: NDAr
     gray = np.ascontiguousarray(img, dtype=np.uint8)
     if gray.ndim != 2:
         raise ValueError(f"colmap-sift: expected a gray image (H, W), got shape {gray.shape}")
-    me = threading.get_ident()
+    me = threading.current_thread()
     with _pool_guard:
         pool = _pool
         if pool is not None:

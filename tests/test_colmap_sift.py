@@ -287,6 +287,25 @@ def test_an_interrupted_block_abandons_its_extractions():
     # a later block (or a library call outside any block) extracts normally again
     small, _ = _blobs(20, seed=1)
     assert len(colmap_sift.detect_colmap_sift(small)[0]) > 5
+    # so do new threads, also one that gets the abandoned thread's ident (the interpreter reuses a
+    # finished thread's ident: a Dask worker's thread once inherited the mark and could not
+    # extract). Threads started together take the cached thread stacks, the worker's among them.
+    abandoned_ident, runs, start = worker.ident, [], threading.Barrier(16)
+
+    def later() -> None:
+        start.wait(60)
+        try:
+            runs.append((threading.get_ident(), len(colmap_sift.detect_colmap_sift(small)[0])))
+        except BaseException as e:  # noqa: BLE001  (recorded for the assertion)
+            runs.append((threading.get_ident(), e))
+
+    threads = [threading.Thread(target=later) for _ in range(16)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert abandoned_ident in {ident for ident, _ in runs}, "no new thread reused the ident"
+    assert len(runs) == 16 and all(isinstance(n, int) and n > 5 for _, n in runs), runs
 
 
 def test_fewer_pooling_scales_change_descriptors_not_keypoints(blobs):
