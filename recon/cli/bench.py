@@ -1,7 +1,9 @@
 """`recon bench ...`: benchmarks. `recon bench pairs DATA_ROOT` runs the GT-homography pair benchmark;
 `recon bench scenes ROOT` runs `recon compare` on every scene under ROOT (see `recon.eval.compare`);
 `recon bench scale` measures time, memory and registration against the number of photos
-(see `recon.eval.bench_scale`)."""
+(see `recon.eval.bench_scale`); `recon bench tilt` renders frontal/oblique pairs of a textured plane
+with exact homographies and counts the pairs each method solves per viewing angle
+(`recon.eval.bench_tilt`)."""
 
 from __future__ import annotations
 
@@ -44,6 +46,25 @@ def parse_methods(text: str | None) -> list[str]:
     return list(dict.fromkeys(methods))
 
 
+def build_matchers(names: list[str], seed: int, baseline_ransac_px: float) -> dict:
+    """One PairMatcher per method name; the baselines with their final RANSAC at `baseline_ransac_px`."""
+    from matching.registry import get_matcher
+    from recon.errors import UserError
+
+    matchers = {}
+    for m in names:
+        try:
+            matchers[m] = get_matcher(m, seed=seed) if m == "extra-affine" \
+                else get_matcher(m, seed=seed, ransac_px=baseline_ransac_px)
+        except ImportError as e:  # a method whose module is not in this checkout yet
+            raise UserError(f"method {m!r} is not available: {e}") from None
+    return matchers
+
+
+BASELINE_RANSAC_HELP = ("Final RANSAC threshold of the baselines (5 = OpenCV's asift sample, i.e. stock; 1.5 = the "
+                        "extra-affine matcher's own filter).")
+
+
 @bench_app.command("pairs")
 def pairs_cmd(
     data_root: Annotated[Path, typer.Argument(help="Folder holding oxford/, hpatches/ and/or evd/ pairs "
@@ -58,12 +79,9 @@ def pairs_cmd(
         "--only", help="Run only pairs whose name contains this text (case-insensitive).")] = None,
     progress: Annotated[bool, progress_option()] = True,
     seed: Annotated[int, seed_option()] = 0,
-    baseline_ransac_px: Annotated[float, typer.Option(
-        "--baseline-ransac-px", help="Final RANSAC threshold of the baselines (5 = OpenCV's asift sample, "
-                                     "i.e. stock; 1.5 = the extra-affine matcher's own filter).")] = 5.0,
+    baseline_ransac_px: Annotated[float, typer.Option("--baseline-ransac-px", help=BASELINE_RANSAC_HELP)] = 5.0,
 ) -> None:
     """Precision, points, time and peak memory of each method on each GT pair (paper's Table I)."""
-    from matching.registry import get_matcher
     from recon.errors import UserError
     from recon.eval.bench_pairs import discover_pairs, print_report, run_bench
 
@@ -80,15 +98,73 @@ def pairs_cmd(
         pairs = [p for p in pairs if only.lower() in p.name.lower()]
         if not pairs:
             raise UserError(f"no pair name contains {only!r}")
-    matchers = {}
-    for m in names:
-        try:
-            matchers[m] = get_matcher(m, seed=seed) if m == "extra-affine" \
-                else get_matcher(m, seed=seed, ransac_px=baseline_ransac_px)
-        except ImportError as e:  # a method whose module is not in this checkout yet
-            raise UserError(f"method {m!r} is not available: {e}") from None
+    matchers = build_matchers(names, seed, baseline_ransac_px)
     rows = run_bench(pairs, names, th=th, json_path=json_out, progress=progress, matchers=matchers)
     print_report(rows, th=th)
+    if json_out is not None:
+        typer.echo(f"wrote {len(rows)} rows to {json_out}")
+
+
+@bench_app.command("tilt")
+def tilt_cmd(
+    out: Annotated[Path, typer.Option("--out", help="Rendered pairs: OUT/<texture>/<view>/{0,1}.png and "
+                                                    "H_1_from_0.txt.")] = Path("out") / "bench-tilt",
+    textures: Annotated[str, typer.Option("--textures", help="Comma-separated textures pasted on the plane: "
+                                                             "procedural:SEED or image files.")]
+        = "procedural:0,procedural:1",
+    angles: Annotated[str, typer.Option("--angles", help="Comma-separated viewing angles of the oblique view, "
+                                                         "degrees from the plane's normal (tilt = 1/cos).")]
+        = "45,60,70,75,80",
+    azimuths: Annotated[str, typer.Option("--azimuths", help="Comma-separated in-plane directions of the "
+                                                             "oblique camera, degrees.")] = "0,45",
+    roll: Annotated[float, typer.Option("--roll", help="Rotation of the oblique camera about its axis, "
+                                                       "degrees.")] = 20.0,
+    zooms: Annotated[str, typer.Option("--zooms", help="Comma-separated focal lengths of the oblique camera over "
+                                                       "the frontal one's (0.5 = half the detail).")] = "1",
+    gain: Annotated[float, typer.Option("--gain", help="Exposure of the oblique photo (intensity factor).")] = 1.0,
+    gamma: Annotated[float, typer.Option("--gamma", help="Tone curve of the oblique photo (255 (I/255)^gamma).")]
+        = 1.0,
+    noise: Annotated[float, typer.Option("--noise", help="Gaussian noise on the oblique photo, grey levels.")] = 0.0,
+    jpeg: Annotated[int, typer.Option("--jpeg", help="JPEG quality of the oblique photo (0 = lossless).")] = 0,
+    methods: Annotated[Optional[str], typer.Option(
+        "--methods", help="Comma-separated methods.")] = "extra-affine,asift,sift",
+    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
+                                                     help="Write the rows to this JSON file.")] = None,
+    progress: Annotated[bool, progress_option()] = True,
+    seed: Annotated[int, seed_option()] = 0,
+    baseline_ransac_px: Annotated[float, typer.Option("--baseline-ransac-px", help=BASELINE_RANSAC_HELP)] = 5.0,
+) -> None:
+    """Rendered frontal/oblique pairs of a textured plane with exact homographies: solved pairs per viewing angle."""
+    import sys
+
+    from rich.console import Console
+
+    from recon.core.outdir import claim_output
+    from recon.errors import UserError
+    from recon.eval.bench_pairs import print_report
+    from recon.eval.bench_tilt import parse_floats, parse_textures, run_tilt_bench, tilt_table, tilt_views
+    from scenes.tilt import Photometry
+
+    names = parse_methods(methods)
+    specs = parse_textures(textures)
+    if not math.isfinite(roll):
+        raise UserError(f"--roll must be a finite number of degrees, got {roll}")
+    views = tilt_views(parse_floats(angles, "--angles", 0.0, 89.0), parse_floats(azimuths, "--azimuths", -360.0, 360.0),
+                       roll, parse_floats(zooms, "--zooms", 0.05, 20.0))
+    try:
+        photometry = Photometry(gain, gamma, noise, jpeg)
+    except ValueError:
+        raise UserError(f"--gain {gain} / --gamma {gamma} must be positive, --noise {noise} >= 0, "
+                        f"--jpeg {jpeg} in 0..100") from None
+    matchers = build_matchers(names, seed, baseline_ransac_px)
+    err = Console(stderr=True, highlight=False)
+    with claim_output(out, "bench") as out:
+        rows = run_tilt_bench(out, specs, views, names, matchers, json_path=json_out, progress=progress,
+                              log=lambda m: err.print(f"recon: {m}", markup=False),
+                              photometry=None if photometry == Photometry() else photometry)
+    console = Console(width=None if sys.stdout.isatty() else 160)
+    print_report(rows, console=console)
+    console.print(tilt_table(rows))
     if json_out is not None:
         typer.echo(f"wrote {len(rows)} rows to {json_out}")
 
