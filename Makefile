@@ -9,7 +9,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DEMO   := out/demo
 
-.PHONY: setup demo test test-fast lint bench-pairs bench-difficulty clean
+.PHONY: setup demo test test-fast lint bench-pairs bench-difficulty bench-tilt clean
 
 $(STAMP): pyproject.toml
 	@./.ci/system-deps.sh
@@ -40,6 +40,11 @@ test-fast: $(STAMP)
 
 bench-pairs: $(STAMP)
 	$(BIN)/recon bench pairs ../shared/data --json benchmarks/results/pairs.json
+
+bench-tilt: $(STAMP)
+	$(BIN)/recon bench tilt --out out/bench-tilt \
+	    --textures procedural:0,procedural:1,../shared/data/oxford/graf/img1.png,../shared/data/hpatches/v_dogman/1.png \
+	    --angles 60,70,75,80,83,85 --zooms 0.5,1 --json benchmarks/results/tilt.json
 
 bench-difficulty: $(STAMP)
 	$(BIN)/recon bench difficulty --json benchmarks/results/difficulty.json
