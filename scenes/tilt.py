@@ -78,7 +78,8 @@ class Photometry:
     """JPEG quality of a compression round trip, 1-100 (0 = none)."""
 
     def __post_init__(self) -> None:
-        if not (self.gain > 0 and self.gamma > 0 and self.noise_sigma >= 0 and 0 <= self.jpeg_quality <= 100):
+        finite = all(math.isfinite(v) for v in (self.gain, self.gamma, self.noise_sigma))
+        if not (finite and self.gain > 0 and self.gamma > 0 and self.noise_sigma >= 0 and 0 <= self.jpeg_quality <= 100):
             raise ValueError(f"{self}: gain and gamma must be positive, noise_sigma >= 0, jpeg_quality in 0..100")
 
     def apply(self, img: NDArray[np.uint8], seed: int) -> NDArray[np.uint8]:
@@ -158,8 +159,7 @@ def render_tilt_pair(texture: NDArray[np.uint8], view: TiltView, image_size: tup
     """
     if texture.ndim == 3:
         texture = cv2.cvtColor(texture, cv2.COLOR_BGR2GRAY)
-    w = image_size[0]
-    distance = FOCAL_FACTOR * w * texture.shape[1] / float(w)  # frontal: 1 image px = tex_w / w texture px
+    distance = FOCAL_FACTOR * texture.shape[1]  # f = FOCAL_FACTOR * w: the texture's width spans the image's
     img0, H0 = render(texture, TiltView(0.0), image_size, distance, supersample)
     img1, H1 = render(texture, view, image_size, distance, supersample)
     if photometry is not None:

@@ -87,8 +87,8 @@ def test_the_extra_affine_matcher_solves_a_75_degree_view_that_plain_sift_does_n
 
 
 @pytest.mark.parametrize("args", [["--textures", "nowhere.png"], ["--textures", "procedural:x"],
-                                  ["--angles", "95"], ["--angles", "a,b"], ["--zooms", "0"], ["--noise", "-1"], ["--jpeg", "101"],
-                                  ["--methods", "bogus"]])
+                                  ["--angles", "95"], ["--angles", "a,b"], ["--zooms", "0"], ["--noise", "-1"],
+                                  ["--jpeg", "101"], ["--gain", "inf"], ["--methods", "bogus"]])
 def test_bad_options_are_one_line_errors(tmp_path, capsys, args):
     assert main(["bench", "tilt", "--out", str(tmp_path / "o"), *args]) == 2
     err = capsys.readouterr().err.strip()
