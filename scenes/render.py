@@ -74,13 +74,21 @@ def camera_centres(preset: ScenePreset) -> list[NDArray[np.float64]]:
     return out
 
 
-def intrinsics(preset: ScenePreset, scale: float = 1.0) -> NDArray[np.float64]:
-    """K in OpenCV's pixel convention (cx = w/2 - 0.5); `scale` = supersampling factor."""
-    w, h = preset.image_size
-    f = preset.focal_px
-    K = np.array([[f, 0.0, w / 2.0 - 0.5], [0.0, f, h / 2.0 - 0.5], [0.0, 0.0, 1.0]])
+def centred_K(image_size: tuple[int, int], focal_px: float) -> NDArray[np.float64]:
+    """K with the principal point at the image centre, OpenCV's pixel convention (cx = w/2 - 0.5)."""
+    w, h = image_size
+    return np.array([[focal_px, 0.0, w / 2.0 - 0.5], [0.0, focal_px, h / 2.0 - 0.5], [0.0, 0.0, 1.0]])
+
+
+def supersampled(K: NDArray, scale: float) -> NDArray[np.float64]:
+    """K of the same camera rendered at `scale` x the resolution (pixel centres kept consistent)."""
     S = np.array([[scale, 0.0, 0.5 * (scale - 1)], [0.0, scale, 0.5 * (scale - 1)], [0.0, 0.0, 1.0]])
     return S @ K
+
+
+def intrinsics(preset: ScenePreset, scale: float = 1.0) -> NDArray[np.float64]:
+    """K in OpenCV's pixel convention (cx = w/2 - 0.5); `scale` = supersampling factor."""
+    return supersampled(centred_K(preset.image_size, preset.focal_px), scale)
 
 
 def H_img_from_tex(K: NDArray, cam_from_world: NDArray, plane: Plane, px_per_m: float) -> NDArray[np.float64]:

@@ -26,6 +26,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .render import centred_K, look_at_pose, supersampled
+
 BACKGROUND = 128  # grey level outside the plane
 FOCAL_FACTOR = 1.0  # focal length / image width: a 53 degree horizontal field of view
 
@@ -95,27 +97,16 @@ class Photometry:
         return res
 
 
-def intrinsics(image_size: tuple[int, int], focal_px: float) -> NDArray[np.float64]:
-    """K with the principal point at the image centre, OpenCV's pixel convention."""
-    w, h = image_size
-    return np.array([[focal_px, 0.0, w / 2.0 - 0.5], [0.0, focal_px, h / 2.0 - 0.5], [0.0, 0.0, 1.0]])
-
-
 def cam_from_world(view: TiltView, distance: float) -> NDArray[np.float64]:
     """[R | t] of the camera of `view` (world = texture frame, see the module doc), looking at the
-    origin from `distance` texture px; the frontal camera is TiltView(0)."""
+    origin from `distance` texture px; the frontal camera is TiltView(0), with the texture unmirrored
+    (x right, y down). The view angle stays below 90 degrees, so the view never looks along y."""
     a, az, roll = (math.radians(v) for v in (view.angle_deg, view.azimuth_deg, view.roll_deg))
     centre = distance * np.array([math.sin(a) * math.cos(az), math.sin(a) * math.sin(az), -math.cos(a)])
-    z = -centre / np.linalg.norm(centre)
-    x = np.cross(z, (0.0, -1.0, 0.0))  # frontal: x = (1, 0, 0), y = (0, 1, 0): the texture unmirrored
-    if np.linalg.norm(x) < 1e-9:
-        x = np.array([1.0, 0.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
+    P = look_at_pose(centre, np.zeros(3), up=(0.0, -1.0, 0.0))
     c, s = math.cos(roll), math.sin(roll)
-    x, y = c * x + s * y, -s * x + c * y
-    R = np.stack([x, y, z])
-    return np.hstack([R, (-R @ centre)[:, None]])
+    roll_R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # x, y turned about the optical axis
+    return roll_R @ P
 
 
 def H_img_from_tex(K: NDArray, cam: NDArray, tex_size: tuple[int, int]) -> NDArray[np.float64]:
@@ -127,20 +118,14 @@ def H_img_from_tex(K: NDArray, cam: NDArray, tex_size: tuple[int, int]) -> NDArr
     return H / H[2, 2]
 
 
-def _supersampled(K: NDArray, f: int) -> NDArray[np.float64]:
-    """K of the same camera rendered at f x the resolution (pixel centres kept consistent)."""
-    S = np.array([[f, 0.0, 0.5 * (f - 1)], [0.0, f, 0.5 * (f - 1)], [0.0, 0.0, 1.0]])
-    return S @ K
-
-
 def render(texture: NDArray[np.uint8], view: TiltView, image_size: tuple[int, int], distance: float,
            supersample: int) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
     """The 8-bit grey image of `view` and its H_img_from_tex."""
     w, h = image_size
-    K = intrinsics(image_size, FOCAL_FACTOR * w * view.zoom)
+    K = centred_K(image_size, FOCAL_FACTOR * w * view.zoom)
     cam = cam_from_world(view, distance)
     tex_size = (texture.shape[1], texture.shape[0])
-    H_big = H_img_from_tex(_supersampled(K, supersample), cam, tex_size)
+    H_big = H_img_from_tex(supersampled(K, supersample), cam, tex_size)
     big = cv2.warpPerspective(texture, H_big, (w * supersample, h * supersample), flags=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=BACKGROUND)
     img = cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA)

@@ -31,8 +31,6 @@ from scenes.tilt import Photometry, TiltView, render_tilt_pair
 
 IMAGE_SIZE = (800, 600)
 TEXTURE_SIZE = (1600, 1200)  # twice the images: the frontal view reads 2 texture px per pixel
-DEFAULT_ANGLES = (45.0, 60.0, 70.0, 75.0, 80.0)  # tilts 1.41, 2, 2.92, 3.86, 5.76
-DEFAULT_AZIMUTHS = (0.0, 45.0)
 DEFAULT_ROLL = 20.0
 
 
