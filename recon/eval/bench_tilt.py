@@ -141,7 +141,7 @@ def solved(row: dict[str, Any]) -> bool:
 
 
 def tilt_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per (viewing angle, method): pairs, solved, median correct, median seconds."""
+    """Per (zoom, viewing angle, method): pairs, solved, median correct, median seconds."""
     out = []
     for zoom, angle in sorted({(r["zoom"], r["angle_deg"]) for r in rows}):
         for m in dict.fromkeys(r["method"] for r in rows):
@@ -154,7 +154,8 @@ def tilt_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def tilt_table(rows: Sequence[dict[str, Any]]):
-    """A rich Table: one line per viewing angle, 'solved / pairs, median correct, median s' per method."""
+    """A rich Table: one line per (zoom, viewing angle), 'solved / pairs, median correct, median s'
+    per method (`tilt_summary`), and a last line of all pairs solved per method."""
     from rich.table import Table
 
     methods = list(dict.fromkeys(r["method"] for r in rows))
@@ -164,13 +165,13 @@ def tilt_table(rows: Sequence[dict[str, Any]]):
     t.add_column("angle (tilt)", justify="right", no_wrap=True)
     for m in methods:
         t.add_column(m, justify="right", no_wrap=True)
-    summary = tilt_summary(rows)
-    for zoom, angle in sorted({(s["zoom"], s["angle_deg"]) for s in summary}):
-        cells = {s["method"]: s for s in summary if s["angle_deg"] == angle and s["zoom"] == zoom}
-        first = next(iter(cells.values()))
-        t.add_row(f"{zoom:g}", f"{angle:g}° ({first['tilt']:.2f})",
+    cells: dict[tuple[float, float], dict[str, dict[str, Any]]] = {}
+    for c in tilt_summary(rows):  # already in (zoom, angle) order
+        cells.setdefault((c["zoom"], c["angle_deg"]), {})[c["method"]] = c
+    for (zoom, angle), by_method in cells.items():
+        t.add_row(f"{zoom:g}", f"{angle:g}° ({by_method[methods[0]]['tilt']:.2f})",
                   *[f"{c['solved']}/{c['pairs']}, {c['median_correct']:g}, {c['median_seconds']:.2f}"
-                    for c in (cells[m] for m in methods)])
+                    for c in (by_method[m] for m in methods)])
     tot = [f"{sum(map(solved, rs))}/{len(rs)}" for rs in ([r for r in rows if r['method'] == m] for m in methods)]
     t.add_row("all", "", *tot)
     return t
