@@ -67,20 +67,22 @@ def row_of(name: str, m: dict[str, Any], n: int, step: float, source: str) -> di
             "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
             "rot_err_deg": m.get("rel_rot_err_deg_median"), "auc_5": m.get("auc_5"),
             "verified_pairs": m.get("verified_pairs", 0), "pairs": m.get("num_pairs", 0),
-            "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
+            "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0),
+            "distinct_per_pair": m.get("distinct_inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
             "reproj_px": m.get("mean_reprojection_error"), "seconds": m.get("seconds_total"),
             "match_seconds": (m.get("stages") or {}).get("match"),
             "source": source}
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    lines = [f"{'views':>5} {'step':>6} {'method':<16} {'reg':>6} {'rot.err':>8} {'inl/pair':>9} {'s':>7} {'match s':>7}"]
+    lines = [f"{'views':>5} {'step':>6} {'method':<16} {'reg':>6} {'rot.err':>8} {'inl/pair':>9} {'distinct':>9} "
+             f"{'s':>7} {'match s':>7}"]
     for r in rows:
         rot = "-" if r["rot_err_deg"] is None else f"{r['rot_err_deg']:.3f}"
         sec = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
         msec = "-" if r["match_seconds"] is None else f"{r['match_seconds']:.1f}"
         lines.append(f"{r['views']:>5} {r['step_deg']:>6} {r['method']:<16} {r['registered']:>2}/{r['images']:<3} "
-                     f"{rot:>8} {r['inliers_per_pair']:>9.1f} {sec:>7} {msec:>7}")
+                     f"{rot:>8} {r['inliers_per_pair']:>9.1f} {r.get('distinct_per_pair', 0.0):>9.1f} {sec:>7} {msec:>7}")
     return "\n".join(lines)
 
 

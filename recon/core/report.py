@@ -21,7 +21,9 @@
 * `pairs`: one row per pair in pair order: `image0`, `image1`, `reference` (name of the image
   the matcher simulated, or null), `best_view` ({t, phi, s} or null), `raw_matches` (matcher
   output), `merged_matches` (after keypoint merging), `verified_inliers` (COLMAP's two-view
-  geometry), `two_view_config` (COLMAP's two-view model; `config` in version 1), `cached`
+  geometry), `distinct_inliers` (those counted once per distinct pair of keypoint positions:
+  COLMAP's SIFT keeps two orientations of one point as two keypoints, `tracks.distinct_correspondences`),
+  `two_view_config` (COLMAP's two-view model; `config` in version 1), `cached`
   (loaded from the pair cache), `reason`;
 * `skipped`: [{name, reason}] for unreadable, corrupt, duplicate or un-importable images;
 * `warnings`, `config` (the RunConfig, nested as `recon.config.RunConfig.to_dict`), `method` (the
@@ -33,7 +35,8 @@
   `features_computed` / `features_reused` (FeatureStore entries: each image's features are
   computed once per run and shared by all its pairs), `database_reused`, `model_reused`,
   `merge` (keypoint merging counts), `scene`, `out`;
-* `verified_pairs`, `inliers_per_pair_mean` / `_median` (over verified pairs), `num_keypoints`
+* `verified_pairs`, `inliers_per_pair_mean` / `_median` and `distinct_inliers_per_pair_mean`
+  (over verified pairs), `num_keypoints`
   (per image, as written to the database) and `num_keypoints_mean`;
 * `sfm_options` (the incremental mapper's options) and `colmap_options` (`verification`, and for
   stock also `extraction` and `matching`): pycolmap's own `todict()` of the options used
@@ -75,6 +78,7 @@ class PairRow:
     raw_matches: int = 0
     merged_matches: int = 0
     verified_inliers: int = 0
+    distinct_inliers: int = 0  # verified inliers counted once per distinct pair of positions (tracks.distinct_correspondences)
     two_view_config: str = ""  # COLMAP's TwoViewGeometry configuration, e.g. CALIBRATED, PLANAR
     cached: bool = False
     seconds: float = 0.0
@@ -119,6 +123,7 @@ class RunReport:
     verified_pairs: int = 0
     inliers_per_pair_mean: float = 0.0
     inliers_per_pair_median: float = 0.0
+    distinct_inliers_per_pair_mean: float = 0.0
     num_keypoints_mean: float = 0.0
     num_keypoints: dict[str, int] = field(default_factory=dict)
     peak_growth_mb: float | None = None
@@ -159,6 +164,8 @@ class RunReport:
         self.verified_pairs = len(counts)
         self.inliers_per_pair_mean = float(np.mean(counts)) if counts else 0.0
         self.inliers_per_pair_median = float(np.median(counts)) if counts else 0.0
+        distinct = [p.distinct_inliers for p in self.pairs if p.verified_inliers > 0]
+        self.distinct_inliers_per_pair_mean = float(np.mean(distinct)) if distinct else 0.0
         self.num_keypoints_mean = float(np.mean(list(self.num_keypoints.values()))) if self.num_keypoints else 0.0
 
 

@@ -110,9 +110,11 @@ def load_model(model_dir: Path):
 # one method -------------------------------------------------------------------------------------
 def pair_summary(pairs: list[dict[str, Any]]) -> dict[str, Any]:
     counts = [int(p.get("verified_inliers", 0)) for p in pairs if int(p.get("verified_inliers", 0)) > 0]
+    distinct = [int(p.get("distinct_inliers", 0)) for p in pairs if int(p.get("verified_inliers", 0)) > 0]
     return {"num_pairs": len(pairs), "verified_pairs": len(counts),
             "inliers_per_pair_mean": float(np.mean(counts)) if counts else 0.0,
-            "inliers_per_pair_median": float(np.median(counts)) if counts else 0.0}
+            "inliers_per_pair_median": float(np.median(counts)) if counts else 0.0,
+            "distinct_inliers_per_pair_mean": float(np.mean(distinct)) if distinct else 0.0}
 
 
 def method_result(method: str, report: dict[str, Any] | None, peak: PeakRss, gt, out: Path,
@@ -415,6 +417,7 @@ def compare_table(res: dict[str, Any]):
     row("obs. in inconsistent tracks %", lambda m: _pct(inconsistent_share(m)))
     row("verified pairs", lambda m: f"{m.get('verified_pairs', 0)}/{m.get('num_pairs', 0)}")
     row("inliers / verified pair", lambda m: _f(m.get("inliers_per_pair_mean"), ".0f"))
+    row("  distinct correspondences", lambda m: _f(m.get("distinct_inliers_per_pair_mean"), ".0f"))
     stages: list[str] = []
     for m in methods.values():
         stages += [s for s in (m.get("stages") or {}) if s not in stages]

@@ -71,7 +71,8 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
             "status": m.get("status"), "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
             "rot_err_deg": m.get("rel_rot_err_deg_median"), "trans_err_deg": m.get("rel_trans_err_deg_median"),
             "auc_5": m.get("auc_5"), "verified_pairs": m.get("verified_pairs", 0), "pairs": m.get("num_pairs", 0),
-            "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
+            "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0),
+            "distinct_per_pair": m.get("distinct_inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
             "seconds": m.get("seconds_total"),
         })
     return rows
@@ -135,7 +136,7 @@ def difficulty_table(data: dict[str, Any]):
     for m in methods:
         t.add_column(f"{m}\nregistered", justify="right")
         t.add_column(f"{m}\nrot err ° med", justify="right")
-        t.add_column(f"{m}\ninliers/pair", justify="right")
+        t.add_column(f"{m}\ninliers/pair\n(distinct)", justify="right")
     for n in dict.fromkeys(r["views"] for r in rows):
         by = {r["method"]: r for r in rows if r["views"] == n}
         cells = [str(n), f"{next(iter(by.values()))['step_deg']:.1f}"]
@@ -148,7 +149,7 @@ def difficulty_table(data: dict[str, Any]):
             reg = f"{r['registered']}/{r['images']}"
             cells += [reg if full else f"[red]{reg}[/red]",
                       "-" if r["rot_err_deg"] is None else f"{r['rot_err_deg']:.2f}",
-                      f"{r['inliers_per_pair']:.0f}"]
+                      f"{r['inliers_per_pair']:.0f} ({r.get('distinct_per_pair', 0.0):.0f})"]
         t.add_row(*cells)
     return t
 
@@ -175,12 +176,12 @@ def plot_difficulty(data: dict[str, Any], path: str | Path) -> Path | None:
         x = [r["step_deg"] for r in rs]
         axes[0].plot(x, [r["registered"] / max(r["images"], 1) for r in rs], **kw)
         axes[1].plot(x, [float("nan") if r["rot_err_deg"] is None else r["rot_err_deg"] for r in rs], **kw)
-        axes[2].plot(x, [r["inliers_per_pair"] for r in rs], **kw)
+        axes[2].plot(x, [r.get("distinct_per_pair") or r["inliers_per_pair"] for r in rs], **kw)
     axes[0].set_ylabel("registered images (fraction)")
     axes[0].set_ylim(-0.05, 1.05)
     axes[1].set_ylabel("median relative rotation error (°)")
     axes[1].set_ylim(bottom=0)
-    axes[2].set_ylabel("verified inliers per verified pair")
+    axes[2].set_ylabel("distinct verified inliers per pair")
     axes[2].set_ylim(bottom=0)
     for ax in axes:
         ax.set_xlabel("azimuth step between neighbouring views (°)")

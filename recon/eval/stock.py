@@ -54,7 +54,7 @@ import pycolmap
 from matching.errors import InputError
 from recon.config import DEFAULT_MAX_SIZE, RunConfig
 from recon.core.context import Run
-from recon.core.database import import_scene_images, read_verified
+from recon.core.database import import_scene_images, read_keypoints_opencv, read_verified
 from recon.core.observer import RunObserver, as_observer
 from recon.core.orchestrator import run_stages
 from recon.core.outdir import remove_outputs
@@ -62,7 +62,7 @@ from recon.core.report import PairRow, RunReport, options_dict
 from recon.core.stages import Export, Load, Pairs, Sfm
 from recon.core.stages.database import remove_db, replace_db
 from recon.core.state import StageState
-from recon.core.tracks import track_stats
+from recon.core.tracks import distinct_correspondences, track_stats
 from recon.errors import UserError
 
 Preset = Literal["default", "high"]
@@ -227,6 +227,7 @@ class StockMatch(_Always):
         run.data.verified = read_verified(run.db_path)
         nk, raw = _read_db_counts(run.db_path, ids, pairs)
         run.data.num_keypoints = nk
+        kpts = {n: read_keypoints_opencv(run.db_path, i) for n, i in ids.items()}
         rows, inliers = [], []
         for (a, b), n_raw in zip(pairs, raw, strict=True):
             ia, ib = ids[a], ids[b]
@@ -235,7 +236,8 @@ class StockMatch(_Always):
                 inl = inl[:, ::-1]
             inliers.append(inl)
             rows.append(PairRow(image0=a, image1=b, raw_matches=n_raw, merged_matches=n_raw,
-                                verified_inliers=int(n_in), two_view_config=conf))
+                                verified_inliers=int(n_in), two_view_config=conf,
+                                distinct_inliers=distinct_correspondences(kpts[a], kpts[b], inl) if len(inl) else 0))
         run.report.pairs = rows
         run.report.pairs_computed = len(rows)
         run.report.num_keypoints = nk

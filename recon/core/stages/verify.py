@@ -26,7 +26,7 @@ from recon.core.report import PairRow, options_dict
 from recon.core.sfm import threshold_scale
 from recon.core.stages.database import Database, remove_db, replace_db
 from recon.core.state import fingerprint
-from recon.core.tracks import track_stats
+from recon.core.tracks import distinct_correspondences, track_stats
 
 
 def verify_options(cfg: RunConfig, px_scale: float) -> pycolmap.TwoViewGeometryOptions:
@@ -93,6 +93,7 @@ class Verify:
                 image0=a, image1=b, reference=None if r.reference is None else (a if r.reference == 0 else b),
                 best_view=None if bv is None else {"t": bv.t, "phi": bv.phi, "s": bv.s},
                 raw_matches=r.num_matches, merged_matches=int(len(mm)), verified_inliers=int(n_in),
+                distinct_inliers=distinct_correspondences(d.keypoints[a], d.keypoints[b], inl) if len(inl) else 0,
                 two_view_config=conf, cached=bool(cached), seconds=float(r.timings.get("total", 0.0)), reason=r.reason,
                 path=r.path, path_reason=r.path_reason))
         run.report.pairs = rows
