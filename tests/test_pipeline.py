@@ -108,6 +108,9 @@ def test_end_to_end_registers_every_image(first_run):
     row = data["pairs"][0]
     assert {"image0", "image1", "reference", "best_view", "raw_matches", "verified_inliers"} <= set(row)
     assert all(p["verified_inliers"] <= p["merged_matches"] <= p["raw_matches"] for p in data["pairs"])
+    # merged keypoints hold one position each: every verified inlier is its own correspondence
+    assert all(p["distinct_inliers"] == p["verified_inliers"] for p in data["pairs"])
+    assert data["distinct_inliers_per_pair_mean"] == data["inliers_per_pair_mean"] > 0
     assert not list(out.glob(".*tmp*")) and not (out / "database.db.tmp").exists()
     import open3d as o3d
 

@@ -46,6 +46,11 @@ def test_stock_default_small_fountain(tmp_path):
     assert r["mean_track_length"] > 2.0 and r["mean_reprojection_error"] < 2.0
     assert len(r["pairs"]) == 6 and r["verified_pairs"] >= 3 and r["inliers_per_pair_mean"] > 50
     assert set(r["stages"]) >= {"load", "database", "features", "match", "sfm"}
+    # COLMAP keeps two orientations of one point as two keypoints: some inliers repeat a correspondence
+    verified = [p for p in r["pairs"] if p["verified_inliers"] > 0]
+    assert all(0 < p["distinct_inliers"] <= p["verified_inliers"] for p in verified)
+    assert sum(p["distinct_inliers"] for p in verified) < 0.97 * sum(p["verified_inliers"] for p in verified)
+    assert r["distinct_inliers_per_pair_mean"] == pytest.approx(np.mean([p["distinct_inliers"] for p in verified]))
     assert r["peak_mb"] > 0 and r["colmap_options"]["extraction"]["max_image_size"] == 640
     # outputs, and report.json holds the same dict
     assert (out / "database.db").is_file() and (out / "sparse" / "0").is_dir()

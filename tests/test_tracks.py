@@ -322,3 +322,16 @@ def test_tracks_config_checks_trust_px():
     for bad in (0, -1.0, True):
         with pytest.raises(UserError, match="trust_px"):
             TracksConfig(trust_px=bad)
+
+
+def test_distinct_correspondences_count_a_repeated_pair_of_positions_once():
+    """Two keypoints at one position (two orientations) matched to two at another count once."""
+    from recon.core.tracks import distinct_correspondences
+
+    k0 = np.array([[10.0, 20.0], [10.0, 20.0], [30.0, 40.0], [30.004, 40.0]], np.float32)
+    k1 = np.array([[11.0, 21.0], [11.0, 21.0], [31.0, 41.0], [50.0, 60.0]], np.float32)
+    m = np.array([[0, 0], [1, 1], [2, 2], [3, 2], [2, 3]])
+    # (0,0) and (1,1) repeat one correspondence; (3,2) is (2,2) within 0.01 px; (2,3) is another
+    assert distinct_correspondences(k0, k1, m) == 3
+    assert distinct_correspondences(k0, k1, m, decimals=3) == 4
+    assert distinct_correspondences(k0, k1, np.zeros((0, 2), np.int64)) == 0
