@@ -7,7 +7,8 @@ ground truth, median camera-centre error after the similarity alignment (relativ
 scene's camera spread), and the median COLMAP-verified inliers over the pairs of neighbouring
 views (adjacent in name order: the rendered arcs name their views in azimuth order) and over
 the wider pairs (pairs a method did not verify count as 0, so a method that loses pairs shows
-it), and the share of the verified match graph's observations in inconsistent tracks (two
+it; in brackets the same counting each distinct pair of keypoint positions once, for results
+that hold it: `distinct_inliers` in docs/report-schema.md), and the share of the verified match graph's observations in inconsistent tracks (two
 keypoints of one image in one track; '-' for results written before it was measured).
 """
 
@@ -21,12 +22,13 @@ from pathlib import Path
 import numpy as np
 
 
-def inliers_by_neighbourhood(pairs: list[dict]) -> tuple[float, float]:
-    """(median over neighbouring-view pairs, median over the others) of verified inliers."""
+def inliers_by_neighbourhood(pairs: list[dict], key: str = "verified_inliers") -> tuple[float, float]:
+    """(median over neighbouring-view pairs, median over the others) of verified inliers (`key`:
+    "distinct_inliers" counts COLMAP's keypoint copies of one point once)."""
     names = sorted({p["image0"] for p in pairs} | {p["image1"] for p in pairs})
     pos = {n: i for i, n in enumerate(names)}
-    near = [p.get("verified_inliers", 0) for p in pairs if abs(pos[p["image0"]] - pos[p["image1"]]) == 1]
-    wide = [p.get("verified_inliers", 0) for p in pairs if abs(pos[p["image0"]] - pos[p["image1"]]) > 1]
+    near = [p.get(key, 0) for p in pairs if abs(pos[p["image0"]] - pos[p["image1"]]) == 1]
+    wide = [p.get(key, 0) for p in pairs if abs(pos[p["image0"]] - pos[p["image1"]]) > 1]
     med = lambda v: float(np.median(v)) if v else float("nan")  # noqa: E731
     return med(near), med(wide)
 
@@ -48,6 +50,10 @@ def rows(data: dict) -> list[str]:
         first = True
         for name, m in res["methods"].items():
             near, wide = inliers_by_neighbourhood(m.get("pairs") or [])
+            inl = f"{near:.0f} / {wide:.0f}"
+            if any("distinct_inliers" in p for p in m.get("pairs") or []):
+                dn, dw = inliers_by_neighbourhood(m.get("pairs") or [], "distinct_inliers")
+                inl += f" ({dn:.0f} / {dw:.0f} distinct)"
             reg = f"{m.get('registered_images', 0)}/{m.get('num_images', 0)}"
             rot = m.get("rel_rot_err_deg_median")
             cen = m.get("center_err_rel_median")
@@ -56,7 +62,7 @@ def rows(data: dict) -> list[str]:
             inc = inconsistent_share(m)
             out.append(f"| {scene + ' (' + str(m.get('num_images', 0)) + ')' if first else ''} | {label} | {reg} | "
                        f"{'-' if rot is None else f'{rot:.2f}°'} | {'-' if cen is None else f'{100 * cen:.2f} %'} | "
-                       f"{near:.0f} / {wide:.0f} | {'-' if inc is None else f'{100 * inc:.1f} %'} | "
+                       f"{inl} | {'-' if inc is None else f'{100 * inc:.1f} %'} | "
                        f"{m.get('num_points3D', 0)} | "
                        f"{'-' if secs is None else f'{secs:.1f}'} |")
             first = False

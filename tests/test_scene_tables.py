@@ -52,3 +52,15 @@ def test_console_tables_show_the_share():
     text = console.export_text()
     assert "incons. %" in text and "obs. in inconsistent tracks %" in text
     assert " 9.6 " in text and " 0.0 " in text
+
+
+def test_readme_table_shows_distinct_inliers_where_the_results_hold_them():
+    methods = _methods()
+    methods["stock-default"] = {**methods["stock-default"],
+                                "pairs": [{"image0": "a", "image1": "b", "verified_inliers": 100, "distinct_inliers": 80}]}
+    lines = scene_tables.rows({"scenes": [{"scene": "/x/castle", "methods": methods}]})
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    col = next(i for i, c in enumerate(header) if c.startswith("median verified inliers"))
+    cells = {ln.split("|")[2].strip(): ln.strip("|").split("|")[col].strip() for ln in lines[2:]}
+    assert cells["stock default"] == "100 / nan (80 / nan distinct)"
+    assert cells["extra-affine"] == "100 / nan"  # written before distinct inliers were counted
