@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views", default="13,9,7,5,4,3")
     ap.add_argument("--variant", action="append", default=[], help="LABEL=KEY=VALUE[,KEY=VALUE] or LABEL=")
     ap.add_argument("--stock-from", type=Path, default=None, help="a `recon bench difficulty` output folder")
-    ap.add_argument("--stock-presets", default="high,default")
+    ap.add_argument("--stock-presets", default="high,default", help="comma-separated; \"\" = none")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
             cj = args.stock_from / "runs" / preset / "compare.json"
             if cj.is_file():
                 stock = json.loads(cj.read_text(encoding="utf-8"))["methods"]
-        for p in args.stock_presets.split(","):
+        for p in [p for p in args.stock_presets.split(",") if p]:  # "" = none
             key = f"stock-{p}"
             if stock is not None and key in stock:
                 rows.append(row_of(key, stock[key], n, step, str(args.stock_from)))
