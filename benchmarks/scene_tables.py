@@ -8,8 +8,9 @@ scene's camera spread), and the median COLMAP-verified inliers over the pairs of
 views (adjacent in name order: the rendered arcs name their views in azimuth order) and over
 the wider pairs (pairs a method did not verify count as 0, so a method that loses pairs shows
 it; in brackets the same counting each distinct pair of keypoint positions once, for results
-that hold it: `distinct_inliers` in docs/report-schema.md), and the share of the verified match graph's observations in inconsistent tracks (two
-keypoints of one image in one track; '-' for results written before it was measured).
+that hold it: `distinct_inliers` in docs/report-schema.md), and the share of the verified match
+graph's observations in inconsistent tracks (two keypoints of one image in one track; '-' for
+results written before it was measured).
 """
 
 from __future__ import annotations

@@ -437,9 +437,9 @@ def distinct_correspondences(kpts0: NDArray, kpts1: NDArray, matches: NDArray, d
     Why: COLMAP's SIFT keeps up to two orientations (`max_num_orientations`), and with affine
     shape estimation two shapes, of one detected point as separate keypoints at the same
     position, and matching pairs them copy for copy, so one correspondence counts as two verified
-    inliers (20 % of stock `high`'s inliers on the rendered 13-view facade, 15 % of `default`'s).
-    Our merged keypoints hold one position each, so "verified inliers per pair" compared the two
-    on different footings; this count compares them on the same one."""
+    inliers. Our merged keypoints hold one position each, so "verified inliers per pair"
+    compared the two on different footings; this count compares them on the same one (figures:
+    docs/decisions.md, "Distinct verified inliers")."""
     m = np.asarray(matches, np.int64).reshape(-1, 2)
     if len(m) == 0:
         return 0

@@ -237,7 +237,7 @@ class StockMatch(_Always):
             inliers.append(inl)
             rows.append(PairRow(image0=a, image1=b, raw_matches=n_raw, merged_matches=n_raw,
                                 verified_inliers=int(n_in), two_view_config=conf,
-                                distinct_inliers=distinct_correspondences(kpts[a], kpts[b], inl) if len(inl) else 0))
+                                distinct_inliers=distinct_correspondences(kpts[a], kpts[b], inl)))
         run.report.pairs = rows
         run.report.pairs_computed = len(rows)
         run.report.num_keypoints = nk
