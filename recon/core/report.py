@@ -160,13 +160,20 @@ class RunReport:
 
     def set_pair_summary(self) -> None:
         """`verified_pairs` and inliers per verified pair from `pairs`; keypoints per image mean."""
-        counts = [p.verified_inliers for p in self.pairs if p.verified_inliers > 0]
-        self.verified_pairs = len(counts)
-        self.inliers_per_pair_mean = float(np.mean(counts)) if counts else 0.0
-        self.inliers_per_pair_median = float(np.median(counts)) if counts else 0.0
-        distinct = [p.distinct_inliers for p in self.pairs if p.verified_inliers > 0]
-        self.distinct_inliers_per_pair_mean = float(np.mean(distinct)) if distinct else 0.0
+        for key, value in inlier_summary([(p.verified_inliers, p.distinct_inliers) for p in self.pairs]).items():
+            setattr(self, key, value)
         self.num_keypoints_mean = float(np.mean(list(self.num_keypoints.values()))) if self.num_keypoints else 0.0
+
+
+def inlier_summary(counts: list[tuple[int, int]]) -> dict[str, Any]:
+    """`verified_pairs`, `inliers_per_pair_mean` / `_median` and `distinct_inliers_per_pair_mean`
+    over the pairs with verified inliers, from (verified inliers, distinct inliers) per pair."""
+    kept = [(v, d) for v, d in counts if v > 0]
+    verified = [v for v, _ in kept]
+    return {"verified_pairs": len(kept),
+            "inliers_per_pair_mean": float(np.mean(verified)) if kept else 0.0,
+            "inliers_per_pair_median": float(np.median(verified)) if kept else 0.0,
+            "distinct_inliers_per_pair_mean": float(np.mean([d for _, d in kept])) if kept else 0.0}
 
 
 def write_report(report: RunReport, path: str | Path) -> None:

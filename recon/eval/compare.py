@@ -109,12 +109,11 @@ def load_model(model_dir: Path):
 
 # one method -------------------------------------------------------------------------------------
 def pair_summary(pairs: list[dict[str, Any]]) -> dict[str, Any]:
-    counts = [int(p.get("verified_inliers", 0)) for p in pairs if int(p.get("verified_inliers", 0)) > 0]
-    distinct = [int(p.get("distinct_inliers", 0)) for p in pairs if int(p.get("verified_inliers", 0)) > 0]
-    return {"num_pairs": len(pairs), "verified_pairs": len(counts),
-            "inliers_per_pair_mean": float(np.mean(counts)) if counts else 0.0,
-            "inliers_per_pair_median": float(np.median(counts)) if counts else 0.0,
-            "distinct_inliers_per_pair_mean": float(np.mean(distinct)) if distinct else 0.0}
+    """`num_pairs` and `report.inlier_summary` of report.json's pair rows (any schema version)."""
+    from recon.core.report import inlier_summary
+
+    counts = [(int(p.get("verified_inliers", 0)), int(p.get("distinct_inliers", 0))) for p in pairs]
+    return {"num_pairs": len(pairs), **inlier_summary(counts)}
 
 
 def method_result(method: str, report: dict[str, Any] | None, peak: PeakRss, gt, out: Path,
