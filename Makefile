@@ -1,7 +1,8 @@
 # The two commands of the README:  `make demo`  and  `make test`.
 # Each creates the virtual environment .venv/ at the repository root when it is missing and
-# installs the project from its own files (pyproject.toml), plus the one system library that
-# open3d needs to import (libusb-1.0-0, Debian package) when the machine lacks it.
+# installs the project from its own files (pyproject.toml, at the exact versions of
+# constraints.txt), plus the one system library that open3d needs to import (libusb-1.0-0,
+# Debian package) when the machine lacks it.
 
 PYTHON ?= python3
 VENV   := .venv
@@ -11,11 +12,11 @@ DEMO   := out/demo
 
 .PHONY: setup demo test test-fast lint bench-pairs bench-difficulty bench-tilt clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@./.ci/system-deps.sh
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,bench]'
 	@touch $(STAMP)
 
 setup: $(STAMP)

@@ -205,8 +205,8 @@ def test_view_web_serves_the_web_viewer(tmp_path):
     cli = "import sys; from recon.cli import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.Popen([sys.executable, "-c", cli, "view", "--web", str(tmp_path), "--port", str(port),
                              "--grpc-port", str(grpc)], stderr=subprocess.PIPE, env=env, text=True,
-                            start_new_session=True)
-    try:
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:  # (SIGINT at its default in the child: a background test run inherits it ignored)
         page, deadline = "", time.monotonic() + 60
         while time.monotonic() < deadline and not page:
             try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -45,13 +46,20 @@ def _env(extra: dict[str, str] | None = None, inject: bool = False) -> dict[str,
     return env
 
 
+def default_sigint() -> None:
+    """Child-process preamble: Ctrl-C (SIGINT) at its default disposition, as in a terminal. A
+    shell starts background jobs with SIGINT ignored and children inherit that, so without this
+    the signal tests would test the launcher (`nohup make test &`), not `recon`."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def recon(*args: object, env: dict[str, str] | None = None, cwd: Path | None = None,
           inject: bool = False, timeout: float = TIMEOUT_S) -> Result:
     """`python -m recon ARGS` with a timeout; a hang fails the test."""
     argv = [str(a) for a in args]
     try:
         p = subprocess.run([sys.executable, "-m", "recon", *argv], capture_output=True, text=True,
-                           env=_env(env, inject), cwd=cwd, timeout=timeout)
+                           env=_env(env, inject), cwd=cwd, timeout=timeout, preexec_fn=default_sigint)
     except subprocess.TimeoutExpired as e:
         pytest.fail(f"recon {' '.join(argv)} hung (no exit within {timeout:.0f} s); stderr: {e.stderr!r}")
     return Result(p.returncode, p.stdout, p.stderr, argv)
@@ -59,7 +67,7 @@ def recon(*args: object, env: dict[str, str] | None = None, cwd: Path | None = N
 
 def start(*args: object, env: dict[str, str] | None = None, inject: bool = False) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "recon", *[str(a) for a in args]], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=_env(env, inject))
+                            stderr=subprocess.PIPE, text=True, env=_env(env, inject), preexec_fn=default_sigint)
 
 
 def finish(p: subprocess.Popen, timeout: float = TIMEOUT_S) -> Result:
