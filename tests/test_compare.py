@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.eval.compare import GT_KEYS, compare_clouds, compare_scene, run_scenes
+from recon.eval.compare import GT_KEYS, compare_clouds, compare_scene, run_scenes, scene_rows
 
 SIZE = (640, 480)  # facade-extreme at this size: ours registers 4/4 (stock default 0/4 with pycolmap 4.2.1)
 
@@ -185,6 +185,18 @@ def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
     assert not (tmp_path / "y").exists()  # refused before anything was created
     err = capsys.readouterr().err
     assert "no such folder" in err and "bogus" in err and "--simulate 'sometimes'" in err and "Traceback" not in err
+
+
+def test_scene_rows_name_each_row_by_its_own_scene():
+    """The JSON rows of a multi-scene benchmark: each method row carries its own scene's name
+    (they all carried the last scene's before)."""
+    results = [{"methods": {"stock-default": {"method": "stock-default", "points": 1},
+                            "extra_affine": {"method": "extra_affine", "points": 2}}},
+               {"methods": {"extra_affine": {"method": "extra_affine", "points": 3}}}]
+    rows = scene_rows(["fountain", "sacre"], results)
+    assert [(r["scene"], r["method"], r["points"]) for r in rows] == [
+        ("fountain", "stock-default", 1), ("fountain", "extra_affine", 2), ("sacre", "extra_affine", 3)]
+    assert "scene" not in results[0]["methods"]["extra_affine"]  # the results themselves are not changed
 
 
 @pytest.mark.slow
