@@ -187,3 +187,31 @@ def test_refinement_moves_graf_1_5_points_closer_to_the_truth(shared_data):
     # centred, which took a part of the error refinement used to remove)
     assert np.median(after) < 0.87 * np.median(before), (np.median(before), np.median(after))
     assert (after < 3**0.5).sum() > (before < 3**0.5).sum()
+
+
+@pytest.mark.slow
+def test_multiview_refinement_moves_a_rendered_pair_onto_its_homography():
+    """`recon run`'s matcher (`MatcherConfig.multiview`: no final homography, so each match's
+    local affine comes from its neighbours) on a rendered 60-degree tilt pair with an exact
+    homography: with refinement its matches sit closer to the truth than without, the same
+    matches otherwise (refinement moves points, it does not add or drop them)."""
+    from scenes.tilt import TiltView, render_tilt_pair
+
+    tex = procedural_texture(8.0, 6.0, 200.0, seed=0)
+    img0, img1, H = render_tilt_pair(tex, TiltView(60.0, 30.0, 20.0, 1.0))
+    store = FeatureStore()
+    store.add_image("a", img0)
+    store.add_image("b", img1)
+    errors = {}
+    for on in (False, True):
+        m = ExtraAffineMatcher(MatcherConfig.from_overrides(variant="multiview", refine__enabled=on, workers=2))
+        try:
+            res = m.match(store, "a", "b")
+        finally:
+            m.close()
+        errors[on] = reprojection_errors(H, *res.matched_points())
+    before, after = errors[False], errors[True]
+    assert len(before) == len(after) > 500
+    # measured: 2360 matches, median 0.353 -> 0.152 px, 64 % -> 87 % within 0.5 px
+    assert np.median(after) < 0.6 * np.median(before), (np.median(before), np.median(after))
+    assert (after < 0.5).mean() > (before < 0.5).mean() + 0.1
