@@ -190,10 +190,11 @@ def test_bench_scenes_cli_and_errors(facade, tmp_path, capsys):
 def test_scene_rows_name_each_row_by_its_own_scene():
     """The JSON rows of a multi-scene benchmark: each method row carries its own scene's name
     (they all carried the last scene's before)."""
-    results = [{"methods": {"stock-default": {"method": "stock-default", "points": 1},
+    results = [{"scene": "/data/scenes/fountain",
+                "methods": {"stock-default": {"method": "stock-default", "points": 1},
                             "extra_affine": {"method": "extra_affine", "points": 2}}},
-               {"methods": {"extra_affine": {"method": "extra_affine", "points": 3}}}]
-    rows = scene_rows(["fountain", "sacre"], results)
+               {"scene": "/data/scenes/sacre", "methods": {"extra_affine": {"method": "extra_affine", "points": 3}}}]
+    rows = scene_rows(results)
     assert [(r["scene"], r["method"], r["points"]) for r in rows] == [
         ("fountain", "stock-default", 1), ("fountain", "extra_affine", 2), ("sacre", "extra_affine", 3)]
     assert "scene" not in results[0]["methods"]["extra_affine"]  # the results themselves are not changed

@@ -525,22 +525,20 @@ def run_scenes(root: str | Path, out_root: str | Path, scenes: Sequence[str] | N
             "ours": OURS, "settings": list(settings), "out": str(out_root), "cpu_count": os.cpu_count(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     results: list[dict[str, Any]] = []
-    names: list[str] = []
     for scene in wanted:
         res = compare_scene(root / scene, out_root / scene, presets=presets, max_size=max_size, pairs=pairs,
                             seed=seed, progress=progress, strict=False, log=log, workers=workers,
                             on_warning=functools.partial(_scene_warning, log, scene), settings=settings)
         results.append(res)
-        names.append(scene)
         if json_path is not None:
-            write_json_atomic(json_path, {"meta": meta, "scenes": results, "rows": scene_rows(names, results)})
+            write_json_atomic(json_path, {"meta": meta, "scenes": results, "rows": scene_rows(results)})
     return results
 
 
-def scene_rows(names: Sequence[str], results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One flat row per (scene, method) of `results`, each named by its own scene (`names[i]` for
-    `results[i]`)."""
-    return [dict(r, scene=name) for name, x in zip(names, results, strict=True) for r in x["methods"].values()]
+def scene_rows(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One flat row per (scene, method) of `compare_scene` results, each named by its own scene
+    (the folder name of the result's "scene" path)."""
+    return [dict(r, scene=Path(x["scene"]).name) for x in results for r in x["methods"].values()]
 
 
 def _scene_warning(log: Callable[[str], None], label: str, message: str) -> None:
