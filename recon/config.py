@@ -230,6 +230,11 @@ class TracksConfig:
     consistency check (`recon.core.tracks.epipolar_inliers`). 1 px measured a little better than the
     verify stage's 4 px (castle_P30 reprojection error 1.174 against 1.198 px, docs/decisions.md)."""
 
+    refine: bool = True
+    """Re-localise every observation of a consistent track against the track's anchor observation
+    by patch alignment under the local affine of the pair joining them
+    (`recon.core.track_refine`; only with `consistent`). False keeps the merged positions."""
+
     def __post_init__(self) -> None:
         import math
 

@@ -13,12 +13,14 @@ dropped conflicts and the share of observations in inconsistent tracks before th
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from recon.core.context import Run
 from recon.core.sfm import threshold_scale
+from recon.core.track_refine import refine_tracks
 from recon.core.tracks import PairMatches, consistent_tracks, epipolar_inliers, merge_tracks, track_stats
 
 
@@ -44,8 +46,15 @@ class Tracks:
         if run.cfg.tracks.consistent:
             max_error_px = run.cfg.tracks.trust_px * threshold_scale(run.px_scale())  # as the verify stage
             merged = consistent_tracks(merged, epipolar_inliers(merged, max_error_px, run.cfg.seed))
+        refine_stats = None
+        if run.cfg.tracks.consistent and run.cfg.tracks.refine and data.store is not None:
+            images = {im.name: data.store.image(im.name) for im in scene.images if im.name in merged.keypoints}
+            scales = {im.name: im.scale_xy for im in scene.images}
+            keypoints, refine_stats = refine_tracks(merged, images, scales, workers=max(1, run.cfg.num_workers))
+            merged = dataclasses.replace(merged, keypoints=keypoints)
         data.merged = merged
         data.keypoints = {n: merged.keypoints.get(n, np.zeros((0, 2), np.float32)) for n in scene.names}
         run.report.merge = {**merged.stats.to_dict(), "merge_px": merge_px, "consistent": run.cfg.tracks.consistent,
-                            "inconsistent_share_merged": before}
+                            "inconsistent_share_merged": before,
+                            "track_refine": refine_stats.to_dict() if refine_stats else None}
         return None
