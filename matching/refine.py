@@ -115,8 +115,10 @@ def common_frames(A: NDArray[np.float64], cap: float) -> tuple[NDArray, NDArray,
 
 def patches(img: NDArray[np.float32], centres: NDArray, P: NDArray, half: int, chunk: int = 1024) -> NDArray[np.float32]:
     """(N, 2 half + 1, 2 half + 1) patches of frames F_i = P_i (x - centre_i), bilinear with
-    reflected borders, in a few `cv2.remap` calls (each chunk's patches stacked as one tall map)."""
+    reflected borders, in a few `cv2.remap` calls (each chunk's patches stacked as one tall map,
+    under `cv2.remap`'s limit of 32767 rows)."""
     size = 2 * half + 1
+    chunk = max(1, min(chunk, (np.iinfo(np.int16).max - 1) // size))
     n = len(centres)
     out = np.empty((n, size, size), np.float32)
     if n == 0:

@@ -16,6 +16,7 @@ from matching.refine import (
     common_frames,
     local_affines_from_homography,
     local_affines_from_neighbours,
+    patches,
     refine_matches,
     refine_points0,
 )
@@ -215,3 +216,17 @@ def test_multiview_refinement_moves_a_rendered_pair_onto_its_homography():
     # measured: 2360 matches, median 0.353 -> 0.152 px, 64 % -> 87 % within 0.5 px
     assert np.median(after) < 0.6 * np.median(before), (np.median(before), np.median(after))
     assert (after < 0.5).mean() > (before < 0.5).mean() + 0.1
+
+
+def test_patches_of_large_radius_stay_under_remaps_row_limit():
+    """1024 patches of 33 x 33 stacked in one map would be 33792 rows, beyond `cv2.remap`'s 32767."""
+    img0, _, _ = _pair()
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(50, 400, (1100, 2))
+    P = np.tile(np.eye(2), (len(centres), 1, 1))
+    out = patches(img0.astype(np.float32), centres, P, 16)
+    assert out.shape == (1100, 33, 33)
+    c = np.round(centres[7]).astype(int)
+    centres[7] = c  # an integer centre with identity frame: the patch is the image crop
+    out = patches(img0.astype(np.float32), centres, P, 16)
+    assert np.allclose(out[7], img0[c[1] - 16:c[1] + 17, c[0] - 16:c[0] + 17])
