@@ -6,14 +6,18 @@ one image closer than `tracks.merge_px` working-resolution pixels become one, so
 can be seen in more than two images. With `tracks.consistent` (the default) the matches that
 would chain two keypoints of one image into one track are then dropped, most trusted first
 (`recon.core.tracks.consistent_tracks`; trust = fitting the pair's fundamental matrix within
-`tracks.trust_px`, `epipolar_inliers`). Key: none, it always runs (seconds); its output is
-the content the database stage's key is built from. `report.merge` gets the merge counts, the
-dropped conflicts and the share of observations in inconsistent tracks before the check.
+`tracks.trust_px`, `epipolar_inliers`). With `tracks.refine` (the default) every consistent
+track's observations are then re-localised against its anchor observation by patch alignment
+(`recon.core.track_refine`; the images come from the feature store). Key: none, it always runs
+(seconds to a minute); its output is the content the database stage's key is built from.
+`report.merge` gets the merge counts, the dropped conflicts, the share of observations in
+inconsistent tracks before the check and the refinement's counts (`track_refine`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -50,7 +54,8 @@ class Tracks:
         if run.cfg.tracks.consistent and run.cfg.tracks.refine and data.store is not None:
             images = {im.name: data.store.image(im.name) for im in scene.images if im.name in merged.keypoints}
             scales = {im.name: im.scale_xy for im in scene.images}
-            keypoints, refine_stats = refine_tracks(merged, images, scales, workers=max(1, run.cfg.num_workers))
+            keypoints, refine_stats = refine_tracks(merged, images, scales, workers=max(1, run.cfg.num_workers),
+                                                    progress=_bar(run, "refine"))
             merged = dataclasses.replace(merged, keypoints=keypoints)
         data.merged = merged
         data.keypoints = {n: merged.keypoints.get(n, np.zeros((0, 2), np.float32)) for n in scene.names}
@@ -58,3 +63,17 @@ class Tracks:
                             "inconsistent_share_merged": before,
                             "track_refine": refine_stats.to_dict() if refine_stats else None}
         return None
+
+
+def _bar(run: Run, part: str) -> Callable[[int, int], None]:
+    """A `progress(done, total)` callback drawing the stage's bar, made at the first call (when
+    the total is known)."""
+    state: dict[str, Any] = {}
+
+    def progress(done: int, total: int) -> None:
+        if "advance" not in state:
+            state["advance"], state["done"] = run.bar(total, part), 0
+        state["advance"](done - state["done"])
+        state["done"] = done
+
+    return progress
