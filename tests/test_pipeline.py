@@ -89,6 +89,10 @@ def test_end_to_end_registers_every_image(first_run):
     assert rep.num_points3D > 200
     assert rep.mean_track_length > 2.5  # merged keypoints: points seen in more than two images
     assert rep.tracks["merged"]["mean_length"] > 2.5 and rep.tracks["unmerged"]["mean_length"] == 2.0
+    # track refinement ran: every track's observations aligned to its anchor, most of them moved
+    refined = rep.merge["track_refine"]
+    assert refined["tracks"] > 200 and refined["aligned"] > refined["tracks"]
+    assert refined["moved"] > 0.5 * refined["aligned"] and 0.01 < refined["median_shift_px"] < 2.0
     assert rep.mean_reprojection_error is not None and rep.mean_reprojection_error < 1.5
     assert not warnings and not rep.skipped
     # features computed once per image and shared by its pairs (SIFT: one store entry per image)
