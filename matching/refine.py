@@ -64,22 +64,35 @@ def local_affines_from_homography(H_1_from_0: NDArray[np.float64], pts0: NDArray
 def local_affines_from_neighbours(pts0: NDArray, pts1: NDArray, k: int) -> NDArray[np.float64]:
     """(N, 2, 2) affines fitted by least squares to each match's `k` nearest matches (in image 0);
     NaN where fewer than 4 matches exist or the fit is degenerate."""
+    return local_affines_at(pts0, pts1, np.arange(len(pts0)), k)
+
+
+def local_affines_at(pts0: NDArray, pts1: NDArray, query: NDArray[np.int64], k: int) -> NDArray[np.float64]:
+    """(Q, 2, 2) affines (image 0 -> image 1) fitted by least squares to the `k` matches nearest
+    (in image 0, the match itself included) to each queried match `query`, all at once (normal
+    equations of [dx, dy, 1] -> d(image 1)); NaN where fewer than 4 matches exist or the fit is
+    degenerate."""
+    q = np.asarray(query, np.int64).reshape(-1)
+    out = np.full((len(q), 2, 2), np.nan)
     n = len(pts0)
-    out = np.full((n, 2, 2), np.nan)
-    if n < 4:
+    if n < 4 or len(q) == 0:
         return out
-    p0 = np.asarray(pts0, np.float64)
-    p1 = np.asarray(pts1, np.float64)
+    p0 = np.asarray(pts0, np.float64).reshape(-1, 2)
+    p1 = np.asarray(pts1, np.float64).reshape(-1, 2)
     k = min(k, n)
-    _, idx = cKDTree(p0).query(p0, k=k)
-    for i in range(n):
-        nb = idx[i]
-        X = np.hstack([p0[nb] - p0[i], np.ones((len(nb), 1))])
-        Y = p1[nb] - p1[i]
-        sol, *_ = np.linalg.lstsq(X, Y, rcond=None)
-        A = sol[:2].T
-        if np.isfinite(A).all() and abs(np.linalg.det(A)) > 1e-6:
-            out[i] = A
+    _, nb = cKDTree(p0).query(p0[q], k=k)
+    nb = np.asarray(nb).reshape(len(q), k)
+    X = p0[nb] - p0[q][:, None, :]  # (Q, k, 2)
+    Y = p1[nb] - p1[q][:, None, :]
+    D = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)  # (Q, k, 3)
+    G = np.einsum("qki,qkj->qij", D, D)
+    B = np.einsum("qki,qkj->qij", D, Y)  # (Q, 3, 2)
+    ok = np.abs(np.linalg.det(G)) > 1e-9
+    sol = np.zeros_like(B)
+    sol[ok] = np.linalg.solve(G[ok], B[ok])
+    A = np.transpose(sol[:, :2, :], (0, 2, 1))
+    good = ok & np.isfinite(A).all(axis=(1, 2)) & (np.abs(np.linalg.det(A)) > 1e-6)
+    out[good] = A[good]
     return out
 
 

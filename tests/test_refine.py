@@ -14,6 +14,7 @@ from matching.refine import (
     RefineConfig,
     common_frame,
     common_frames,
+    local_affines_at,
     local_affines_from_homography,
     local_affines_from_neighbours,
     patches,
@@ -230,3 +231,21 @@ def test_patches_of_large_radius_stay_under_remaps_row_limit():
     centres[7] = c  # an integer centre with identity frame: the patch is the image crop
     out = patches(img0.astype(np.float32), centres, P, 16)
     assert np.allclose(out[7], img0[c[1] - 16:c[1] + 17, c[0] - 16:c[0] + 17])
+
+
+def test_neighbour_affines_match_a_per_match_least_squares_fit():
+    """The vectorised normal-equation fit against `np.linalg.lstsq` on each match's neighbours."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(2)
+    p0 = rng.uniform(0, 500, (200, 2))
+    p1 = p0 @ np.array([[1.2, 0.3], [-0.1, 0.8]]).T + 5 + rng.normal(0, 0.3, p0.shape)
+    _, nbs = cKDTree(p0).query(p0, k=12)
+    ref = np.stack([np.linalg.lstsq(np.c_[p0[nb] - p0[i], np.ones(12)], p1[nb] - p1[i], rcond=None)[0][:2].T
+                    for i, nb in enumerate(nbs)])
+    assert np.allclose(local_affines_from_neighbours(p0, p1, 12), ref, atol=1e-9)
+    q = np.array([0, 17, 199])
+    assert np.allclose(local_affines_at(p0, p1, q, 12), ref[q], atol=1e-9)
+    assert np.isnan(local_affines_at(p0[:3], p1[:3], np.array([0]), 12)).all()  # fewer than 4 matches
+    line = np.c_[np.arange(20.0), np.zeros(20)]
+    assert np.isnan(local_affines_from_neighbours(line, 2 * line, 12)).all()  # collinear: degenerate

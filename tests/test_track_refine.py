@@ -6,9 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from matching.refine import local_affines_from_neighbours
 from recon.core.scene import to_full_res
-from recon.core.track_refine import local_affines_at, refine_tracks, to_working
+from recon.core.track_refine import refine_tracks, to_working
 from recon.core.tracks import MergedTracks
 from scenes.texture import procedural_texture
 
@@ -94,13 +93,3 @@ def test_working_resolution_round_trip_and_scaled_images():
         e_cb = np.linalg.norm(_project(Hs[1] @ np.linalg.inv(Hs[2]), w["c"]) - w["b"], axis=1)
         return float(np.median(np.r_[e_ab, e_cb]))
     assert err(refined) < 0.3 * err(dict(zip(names, noisy)))
-
-
-def test_local_affines_at_matches_the_per_match_fit():
-    rng = np.random.default_rng(2)
-    p0 = rng.uniform(0, 500, (200, 2))
-    A = np.array([[1.2, 0.3], [-0.1, 0.8]])
-    p1 = p0 @ A.T + 5 + rng.normal(0, 0.3, p0.shape)
-    q = np.array([0, 17, 50, 199])
-    assert np.allclose(local_affines_at(p0, p1, q, 12), local_affines_from_neighbours(p0, p1, 12)[q], atol=1e-8)
-    assert np.isnan(local_affines_at(p0[:3], p1[:3], np.array([0]), 12)).all()

@@ -30,9 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
-from matching.refine import RefineConfig, refine_points0
+from matching.refine import RefineConfig, local_affines_at, refine_points0
 from recon.core.scene import to_full_res
 from recon.core.tracks import MergedTracks
 
@@ -58,33 +57,6 @@ def to_working(kpts: NDArray, scale_xy: tuple[float, float]) -> NDArray[np.float
     sx, sy = scale_xy
     k = np.asarray(kpts, np.float64).reshape(-1, 2)
     return np.stack([(k[:, 0] + 0.5) * sx - 0.5, (k[:, 1] + 0.5) * sy - 0.5], axis=1)
-
-
-def local_affines_at(pts0: NDArray, pts1: NDArray, query: NDArray[np.int64], k: int) -> NDArray[np.float64]:
-    """(Q, 2, 2) affines (image 0 -> image 1) fitted by least squares to the `k` matches nearest
-    (in image 0) to each queried match `query`, as `matching.refine.local_affines_from_neighbours`
-    but only where asked and vectorised; NaN where fewer than 4 matches or a degenerate fit."""
-    q = np.asarray(query, np.int64)
-    out = np.full((len(q), 2, 2), np.nan)
-    n = len(pts0)
-    if n < 4 or len(q) == 0:
-        return out
-    p0 = np.asarray(pts0, np.float64)
-    p1 = np.asarray(pts1, np.float64)
-    k = min(k, n)
-    _, nb = cKDTree(p0).query(p0[q], k=k)
-    X = p0[nb] - p0[q][:, None, :]  # (Q, k, 2)
-    Y = p1[nb] - p1[q][:, None, :]
-    D = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)  # (Q, k, 3)
-    G = np.einsum("qki,qkj->qij", D, D)
-    B = np.einsum("qki,qkj->qij", D, Y)  # (Q, 3, 2)
-    ok = np.abs(np.linalg.det(G)) > 1e-9
-    sol = np.zeros_like(B)
-    sol[ok] = np.linalg.solve(G[ok], B[ok])
-    A = np.transpose(sol[:, :2, :], (0, 2, 1))
-    good = ok & np.isfinite(A).all(axis=(1, 2)) & (np.abs(np.linalg.det(A)) > 1e-6)
-    out[good] = A[good]
-    return out
 
 
 def _tree(num_nodes: int, u: NDArray[np.int64], v: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
