@@ -18,7 +18,9 @@ def _report(**kw) -> RunReport:
                     tracks={"merged": {"num_tracks": 120, "mean_length": 3.4, "consistent_mean_length": 3.1,
                                        "inconsistent_share": 0.25},
                             "unmerged": {"mean_length": 2.0}},
-                    merge={"num_keypoints": 900}, seconds_total=12.25, peak_mb=np.float64(812.4),
+                    merge={"num_keypoints": 900, "track_refine": {"tracks": 100, "aligned": 220, "moved": 200,
+                                                                  "median_shift_px": 0.384, "seconds": 0.5}},
+                    seconds_total=12.25, peak_mb=np.float64(812.4),
                     stages={"load": 0.5, "match": np.float32(9.5), "sfm": 2.25},
                     pairs_computed=2, pairs_cached=1, features_computed=4, features_reused=2,
                     camera_mode_used="single", sfm_options={"init_min_tri_angle": 4.0},
@@ -107,6 +109,7 @@ def test_summary_table_shows_the_headline_numbers():
     assert "3.10 / 2.00" in _row(text, "mean track length (graph, consistent tracks, merged / unmerged)")
     assert "25 %" in _row(text, "observations in inconsistent graph tracks")
     assert "0.840" in _row(text, "mean reprojection error (px)")
+    assert "200 / 220 (median 0.38 px)" in _row(text, "observations re-localised by track refinement")
     assert "2 / 1" in _row(text, "pairs (computed / cached)")
     assert "2 / 3" in _row(text, "pairs verified")
     assert "9.5" in _row(text, "match (s)") and "12.2" in _row(text, "total (s)")
@@ -120,6 +123,7 @@ def test_summary_table_of_a_run_without_model():
     assert "no_model" in _row(text, "status")
     assert _row(text, "mean reprojection error (px)").split()[-2] == "-"
     assert "inconsistent" not in text  # the share row only when some observations are inconsistent
+    assert "track refinement" not in _table_text(_report(merge={"track_refine": None}))  # off: no row
     assert "2.00 / 2.00" in text  # mean_length stands in when consistent_mean_length is absent
 
 

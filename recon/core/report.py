@@ -248,6 +248,10 @@ def summary_table(report: RunReport):
                   f"{report.tracks.get('unmerged', {}).get('mean_length', 0.0):.2f}")
         if merged.get("inconsistent_share", 0.0) > 0:
             t.add_row("  observations in inconsistent graph tracks", f"{100 * merged['inconsistent_share']:.0f} %")
+    refined = (report.merge or {}).get("track_refine")
+    if refined and refined.get("aligned"):
+        t.add_row("observations re-localised by track refinement",
+                  f"{refined['moved']} / {refined['aligned']} (median {refined['median_shift_px']:.2f} px)")
     err = report.mean_reprojection_error
     t.add_row("mean reprojection error (px)", "-" if err is None else f"{err:.3f}")
     t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")
