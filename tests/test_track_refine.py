@@ -6,8 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from recon.core.scene import to_full_res
-from recon.core.track_refine import refine_tracks, to_working
+from recon.core.scene import to_full_res, to_working
+from recon.core.track_refine import refine_tracks
 from recon.core.tracks import MergedTracks
 from scenes.texture import procedural_texture
 

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.features import DetectorConfig, Features, detect
+from recon.core.scene import to_working
 
 SIFT_METHODS: frozenset[str] = frozenset({"extra-affine", "sift", "asift"})
 SNAP_PX = 2.0  # working px: how far a merged keypoint may be from a SIFT detection to take its descriptor
@@ -62,8 +63,7 @@ def sift_descriptors(gray_work: NDArray[np.uint8], kpts_full: NDArray[np.float32
     n = len(k)
     if n == 0:
         return np.zeros((0, 128), np.uint8), DescriptorStats()
-    sx, sy = scale_xy
-    k_work = np.stack([(k[:, 0] + 0.5) * sx - 0.5, (k[:, 1] + 0.5) * sy - 0.5], axis=1)
+    k_work = to_working(k, scale_xy)
     if detections is None:
         detections = detect(gray_work, DetectorConfig("sift"))
     pts = np.asarray(detections.kpts, np.float64).reshape(-1, 2)

@@ -263,6 +263,14 @@ def scan_scene(scene_dir: str | Path, max_size: int | None = 1600, workers: int 
     return scene, grays
 
 
+def to_working(kpts: NDArray, scale_xy: tuple[float, float]) -> NDArray[np.float64]:
+    """Full-resolution keypoints (OpenCV convention) -> working resolution, the inverse of
+    `to_full_res`: x_work = (x_full + 0.5) * sx - 0.5 per axis."""
+    sx, sy = scale_xy
+    k = np.asarray(kpts, np.float64).reshape(-1, 2)
+    return np.stack([(k[:, 0] + 0.5) * sx - 0.5, (k[:, 1] + 0.5) * sy - 0.5], axis=1)
+
+
 def to_full_res(kpts: NDArray, scale_xy: tuple[float, float]) -> NDArray[np.float32]:
     """Working-resolution keypoints (OpenCV convention) -> full-resolution keypoints.
 

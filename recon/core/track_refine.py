@@ -32,8 +32,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.refine import RefineConfig, local_affines_at, refine_points0
-from recon.core.scene import to_full_res
-from recon.core.tracks import MergedTracks
+from recon.core.scene import to_full_res, to_working
+from recon.core.tracks import MergedTracks, match_graph
 
 _Aligned = tuple[str, NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]
 
@@ -50,13 +50,6 @@ class TrackRefineStats:
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
-
-
-def to_working(kpts: NDArray, scale_xy: tuple[float, float]) -> NDArray[np.float64]:
-    """Full-resolution keypoints -> working resolution (the inverse of `scene.to_full_res`)."""
-    sx, sy = scale_xy
-    k = np.asarray(kpts, np.float64).reshape(-1, 2)
-    return np.stack([(k[:, 0] + 0.5) * sx - 0.5, (k[:, 1] + 0.5) * sy - 0.5], axis=1)
 
 
 def _tree(num_nodes: int, u: NDArray[np.int64], v: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -104,21 +97,13 @@ def refine_tracks(merged: MergedTracks, images: Mapping[str, NDArray[np.uint8]],
 
     t0 = time.perf_counter()
     cfg = cfg or RefineConfig()
-    names = list(merged.keypoints)
-    index = {n: i for i, n in enumerate(names)}
-    sizes = [len(merged.keypoints[n]) for n in names]
-    offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    num_nodes = int(offset[-1])
+    g = match_graph(merged)
+    names, pair_of, row, u, v = g.names, g.pair_of, g.row, g.u, g.v
     out = {n: np.asarray(merged.keypoints[n], np.float32).copy() for n in names}
     stats = TrackRefineStats()
-    counts = [len(m) for m in merged.matches]
-    if num_nodes == 0 or sum(counts) == 0:
+    if g.num_nodes == 0 or len(u) == 0:
         return out, stats
-    pair_of = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
-    row = np.concatenate([np.arange(c, dtype=np.int64) for c in counts])
-    u = np.concatenate([np.asarray(m[:, 0], np.int64) + offset[index[a]] for (a, _), m in zip(merged.pairs, merged.matches)])
-    v = np.concatenate([np.asarray(m[:, 1], np.int64) + offset[index[b]] for (_, b), m in zip(merged.pairs, merged.matches)])
-    parent, depth = _tree(num_nodes, u, v)
+    parent, depth = _tree(g.num_nodes, u, v)
     stats.tracks = int((depth == 0).sum())
 
     # the match (pair, row) behind each tree edge, and which side of it the child is
@@ -153,17 +138,15 @@ def refine_tracks(merged: MergedTracks, images: Mapping[str, NDArray[np.uint8]],
         new, moved = refine_points0(images[name_c], images[name_p], pts_c_all[rows], pts_p_all[rows], A, cfg)
         return name_c, m[rows, col_c], np.asarray(new, np.float64), moved
 
-    levels = np.unique(depth[child])
+    # one job per (tree level, pair, children's side): the edges sorted by that key, then split
+    order = np.lexsort((side, pair_of[sel], depth[child]))
+    key = np.stack([depth[child], pair_of[sel], side], axis=1)[order]
+    cuts = np.flatnonzero(np.any(key[1:] != key[:-1], axis=1)) + 1
+    levels: dict[int, list[tuple[int, int, NDArray[np.int64]]]] = {}
+    for e in np.split(order, cuts):  # in level order
+        levels.setdefault(int(depth[child[e[0]]]), []).append((int(pair_of[sel[e[0]]]), int(side[e[0]]), e))
     done_edges = 0
-    for level in levels.tolist():
-        at = np.flatnonzero(depth[child] == level)
-        jobs = []
-        for p in np.unique(pair_of[sel[at]]).tolist():
-            for s in (0, 1):
-                e = at[(pair_of[sel[at]] == p) & (side[at] == s)]
-                if len(e):
-                    jobs.append((p, s, e))
-
+    for jobs in levels.values():
         if workers > 1 and len(jobs) > 1:
             with ThreadPoolExecutor(workers) as pool:
                 results = list(pool.map(align, jobs))

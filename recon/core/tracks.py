@@ -296,6 +296,41 @@ def epipolar_inliers(merged: MergedTracks, max_error_px: float, seed: int = 0) -
     return out
 
 
+@dataclass
+class MatchGraph:
+    """`MergedTracks` as one graph: node = (image, merged keypoint), numbered image by image in
+    `keypoints` order (image i's keypoint k is node `offset[i] + k`); edge = one match, pair by
+    pair in order (`pair_of`, `row`: its pair and its row in that pair's matches)."""
+
+    names: list[str]
+    offset: NDArray[np.int64]  # (num_images + 1,)
+    u: NDArray[np.int64]  # (E,) node of each match's image-0 side
+    v: NDArray[np.int64]  # (E,) node of its image-1 side
+    pair_of: NDArray[np.int64]  # (E,)
+    row: NDArray[np.int64]  # (E,)
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.offset[-1])
+
+
+def match_graph(merged: MergedTracks) -> MatchGraph:
+    """The match graph of `merged` (`MatchGraph`)."""
+    names = list(merged.keypoints)
+    index = {n: i for i, n in enumerate(names)}
+    sizes = [len(merged.keypoints[n]) for n in names]
+    offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    counts = [len(m) for m in merged.matches]
+    empty = np.zeros(0, np.int64)
+    pair_of = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
+    row = np.concatenate([np.arange(c, dtype=np.int64) for c in counts]) if counts else empty
+    u = np.concatenate([np.asarray(m[:, 0], np.int64) + offset[index[a]]
+                        for (a, _), m in zip(merged.pairs, merged.matches)]) if counts else empty
+    v = np.concatenate([np.asarray(m[:, 1], np.int64) + offset[index[b]]
+                        for (_, b), m in zip(merged.pairs, merged.matches)]) if counts else empty
+    return MatchGraph(names, offset, u, v, pair_of, row)
+
+
 def consistent_tracks(merged: MergedTracks, trusted: Sequence[NDArray[np.bool_]] | None = None) -> MergedTracks:
     """The same merged keypoints with the matches that would put two keypoints of one image into
     one track dropped, so every track (connected component) holds at most one keypoint per image.
@@ -314,24 +349,18 @@ def consistent_tracks(merged: MergedTracks, trusted: Sequence[NDArray[np.bool_]]
     matches, so the verified graph stays consistent too.
     """
     names = list(merged.keypoints)
-    index = {n: i for i, n in enumerate(names)}
     sizes = [len(merged.keypoints[n]) for n in names]
-    offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     image_of = np.repeat(np.arange(len(names), dtype=np.int64), sizes)
     n_pairs = len(merged.matches)
     counts = np.array([len(m) for m in merged.matches], np.int64)
     if counts.sum() == 0:
         return merged
+    g = match_graph(merged)
+    offset, pair_of, row, u, v = g.offset, g.pair_of, g.row, g.u, g.v
     trust = [np.zeros(c, bool) if trusted is None else np.asarray(t, bool).reshape(-1)
              for c, t in zip(counts, trusted if trusted is not None else [None] * n_pairs)]
     dist = [d if len(d) == c else np.zeros(c, np.float32)
             for c, d in zip(counts, merged.distances or [np.zeros(0, np.float32)] * n_pairs)]
-    pair_of = np.repeat(np.arange(n_pairs, dtype=np.int64), counts)
-    row = np.concatenate([np.arange(c, dtype=np.int64) for c in counts])
-    u = np.concatenate([np.asarray(m[:, 0], np.int64) + offset[index[a]]
-                        for (a, _), m in zip(merged.pairs, merged.matches)])
-    v = np.concatenate([np.asarray(m[:, 1], np.int64) + offset[index[b]]
-                        for (_, b), m in zip(merged.pairs, merged.matches)])
     t_all = np.concatenate(trust)
     n_trusted = np.array([t.sum() for t in trust], np.int64)
     order = np.lexsort((row, pair_of, np.concatenate(dist), -n_trusted[pair_of], ~t_all))
