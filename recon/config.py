@@ -311,13 +311,29 @@ class SfmConfig:
     scaled filter kept observations 4-7.7 px off and measured higher reprojection and rotation
     errors (docs/decisions.md, "Mapper thresholds in full-resolution px")."""
 
+    final_ba_loss: str = field(default="cauchy", metadata={"choices": "recon.core.sfm:FINAL_BA_LOSSES"})
+    """A last global bundle adjustment of the finished model under this robust loss (cauchy,
+    soft_l1, huber), then the mapper's own 4 px filter; none = the mapper's model as it ends
+    (`recon.core.sfm.final_bundle_adjustment`: lower rotation errors on every benchmark scene,
+    for ours and for stock COLMAP, which the comparison maps through the same stage)."""
+
+    final_ba_scale_px: float = 0.5
+    """Scale of `final_ba_loss`, full-resolution px: residuals well above it count less than
+    their square (1 px measured about half the gain of 0.5 px, docs/decisions.md)."""
+
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS
+        from recon.core.sfm import FINAL_BA_LOSSES
 
         if self.mapper not in MAPPERS:
             raise UserError(f"--mapper {self.mapper!r}: choose one of {', '.join(MAPPERS)}")
         if self.num_threads == 0 or self.num_threads < -1:
             raise UserError(f"sfm.num_threads {self.num_threads}: use -1 (all cores) or at least 1")
+        if self.final_ba_loss not in FINAL_BA_LOSSES:
+            raise UserError(f"sfm.final_ba_loss {self.final_ba_loss!r}: choose one of {', '.join(FINAL_BA_LOSSES)}")
+        if isinstance(self.final_ba_scale_px, bool) or not isinstance(self.final_ba_scale_px, (int, float)) \
+                or not self.final_ba_scale_px > 0:
+            raise UserError(f"sfm.final_ba_scale_px {self.final_ba_scale_px!r}: a number of px > 0")
 
 
 @dataclass

@@ -94,6 +94,11 @@ def test_end_to_end_registers_every_image(first_run):
     assert refined["tracks"] > 200 and refined["aligned"] > refined["tracks"]
     assert refined["moved"] > 0.5 * refined["aligned"] and 0.01 < refined["median_shift_px"] < 2.0
     assert rep.mean_reprojection_error is not None and rep.mean_reprojection_error < 1.5
+    # the final robust adjustment ran on the model that was written, after the mapper's
+    fba = rep.final_ba
+    assert fba["applied"] and fba["loss"] == "cauchy" and fba["seconds"] > 0
+    assert fba["mean_reprojection_error_after"] == pytest.approx(rep.mean_reprojection_error, abs=1e-4)
+    assert rep.sfm_options["final_ba"]["scale_px"] == 0.5
     assert not warnings and not rep.skipped
     # features computed once per image and shared by its pairs (SIFT: one store entry per image)
     assert rep.features_computed == rep.num_images

@@ -13,8 +13,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from recon.core.sfm import (GrowthStep, mapping_options, model_stats, options_summary, registered_names,
-                            run_incremental, write_model_atomic, write_points_ply)
+from recon.core.sfm import (FinalBaConfig, GrowthStep, final_bundle_adjustment, mapping_options, model_stats,
+                            options_summary, registered_names, run_incremental, write_model_atomic,
+                            write_points_ply)
 
 
 def synthesize(db_path: Path, num_frames: int = 6, num_points3D: int = 200, keypoint_noise_px: float = 0.0
@@ -179,3 +180,47 @@ def test_the_pipeline_maps_with_colmaps_full_resolution_thresholds_unless_asked_
     assert plain.triangulation.complete_max_reproj_error == pytest.approx(4.0)
     assert scaled.mapper.filter_max_reproj_error == pytest.approx(8.0)
     assert scaled.mapper.abs_pose_max_error == pytest.approx(24.0)
+
+
+def _copy_model(rec: pycolmap.Reconstruction, folder: Path) -> pycolmap.Reconstruction:
+    folder.mkdir()
+    rec.write(str(folder))
+    return pycolmap.Reconstruction(str(folder))
+
+
+def test_final_robust_adjustment_resists_observations_a_few_px_off(tmp_path):
+    """10 % of the observations moved 3 px (inside the mapper's 4 px filter, as chance matches
+    on repeated texture are): a squared-loss adjustment follows them, the final Cauchy one keeps
+    the poses of the clean observations."""
+    db = tmp_path / "database.db"
+    gt = synthesize(db, num_frames=8, num_points3D=300, keypoint_noise_px=0.3)
+    rec = _map(db).reconstruction
+    clean_rot, _ = pose_errors(rec, gt)
+    rng = np.random.default_rng(0)
+    moved = 0
+    for image_id in sorted(rec.reg_image_ids()):
+        for p in rec.image(image_id).points2D:
+            if p.has_point3D() and rng.random() < 0.1:
+                p.xy = p.xy + np.array([3.0, 0.0])
+                moved += 1
+    assert moved > 150
+    squared, robust = _copy_model(rec, tmp_path / "squared"), _copy_model(rec, tmp_path / "robust")
+    o = pycolmap.BundleAdjustmentOptions()
+    o.refine_principal_point = False
+    pycolmap.bundle_adjustment(squared, o)
+    summary = final_bundle_adjustment(robust, FinalBaConfig())
+    assert summary["applied"] and summary["loss"] == "cauchy" and summary["observations_dropped"] >= 0
+    squared_rot, _ = pose_errors(squared, gt)
+    robust_rot, _ = pose_errors(robust, gt)
+    assert squared_rot > 2 * clean_rot  # the moved observations do pull a squared loss
+    assert robust_rot < 0.5 * squared_rot and robust_rot < 1.5 * clean_rot
+
+
+def test_final_adjustment_off_leaves_the_model_as_the_mapper_made_it(tmp_path):
+    db = tmp_path / "database.db"
+    synthesize(db, keypoint_noise_px=0.5)
+    rec = _map(db).reconstruction
+    before = {i: rec.image(i).cam_from_world().rotation.quat.copy() for i in rec.reg_image_ids()}
+    assert final_bundle_adjustment(rec, FinalBaConfig(loss="none")) == {"loss": "none", "applied": False}
+    for i, q in before.items():
+        assert np.array_equal(rec.image(i).cam_from_world().rotation.quat, q)

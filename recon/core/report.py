@@ -45,7 +45,10 @@
   `model` (index of the model being built), `image` (just registered), `registered_images`
   and `num_points3D` of that model right after the step, and `initial_pair` (both images of the
   model's initial pair, by image id, on the model's first step; null on the others and in runs
-  made before version 2) (kept from the run that built the model when the model is reused).
+  made before version 2) (kept from the run that built the model when the model is reused);
+* `final_ba`: the final robust bundle adjustment (`recon.core.sfm.final_bundle_adjustment`):
+  `loss`, `applied`, and when applied `scale_px`, `mean_reprojection_error_before` / `_after`,
+  `observations_dropped` by the mapper's filter afterwards, `seconds`.
 
 Units: seconds (`seconds*`, `stages`), MB = 10^6 bytes (`*_mb`), pixels of the full-resolution
 photo (`mean_reprojection_error`), degrees (`best_view.phi`); `scene` and `out` are absolute.
@@ -131,6 +134,7 @@ class RunReport:
     sfm_options: dict[str, Any] = field(default_factory=dict)
     colmap_options: dict[str, Any] = field(default_factory=dict)
     sfm_growth: list[dict[str, Any]] = field(default_factory=list)
+    final_ba: dict[str, Any] = field(default_factory=dict)
     pairs: list[PairRow] = field(default_factory=list)
     skipped: list[dict[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)

@@ -53,7 +53,7 @@ import numpy as np
 
 from matching.errors import InputError
 from matching.memory import RUN_INTERVAL_S, PeakRss
-from recon.config import DEFAULT_MAX_SIZE
+from recon.config import DEFAULT_MAX_SIZE, SfmConfig
 from recon.core.jsonio import write_json_atomic
 from recon.core.scene import IMAGE_EXTS
 from recon.errors import UserError
@@ -167,14 +167,16 @@ def run_ours(scene_dir: Path, out: Path, gt, max_size: int, pairs: str, seed: in
 
 
 def run_stock_preset(scene_dir: Path, out: Path, gt, preset: str, max_size: int, pairs: str, seed: int,
-                     strict: bool = True, workers: int = 0) -> dict[str, Any]:
+                     strict: bool = True, workers: int = 0, sfm: SfmConfig | None = None) -> dict[str, Any]:
+    """Stock COLMAP (`preset`) on the scene, evaluated; `sfm`: the mapping options of ours
+    (`sfm.*` settings), so both map the same way."""
     from recon.eval.stock import run_stock
 
     report, err = None, None
     with PeakRss(RUN_INTERVAL_S) as mem:
         try:
             report = run_stock(scene_dir, out, preset=preset, pairs=pairs, max_size=max_size,  # type: ignore[arg-type]
-                               seed=seed, workers=workers).to_dict()
+                               seed=seed, workers=workers, sfm=sfm).to_dict()
         except (InputError, UserError) as e:
             if strict:
                 raise
@@ -298,10 +300,9 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
     if bad or not presets:
         raise UserError(f"stock preset {', '.join(bad) or '(none)'}: choose from {', '.join(PRESETS)}")
     RunConfig.from_options(max_size=max_size, pairs=pairs, seed=seed)  # validates the options (UserError)
-    if settings:
-        from recon.config import build_run_config
+    from recon.config import build_run_config
 
-        build_run_config(settings=list(settings))  # and the settings (UserError)
+    sfm_cfg = build_run_config(settings=list(settings)).sfm  # validates the settings (UserError)
     out_dir = Path(out).expanduser().resolve() if out is not None else scene_dir / "compare"
     out_dir.mkdir(parents=True, exist_ok=True)
 
@@ -325,7 +326,8 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
     for preset in presets:
         d = out_dir / f"stock-{preset}"
         log(f"{scene_dir.name}: stock COLMAP SIFT ({preset}) -> {d}")
-        methods[f"stock-{preset}"] = run_stock_preset(scene_dir, d, gt, preset, max_size, pairs, seed, strict, workers)
+        methods[f"stock-{preset}"] = run_stock_preset(scene_dir, d, gt, preset, max_size, pairs, seed, strict, workers,
+                                                      sfm_cfg)
     d = out_dir / OURS_KEY
     log(f"{scene_dir.name}: recon run ({OURS}) -> {d}")
     methods[OURS_KEY] = run_ours(scene_dir, d, gt, max_size, pairs, seed, progress, strict, workers, settings)

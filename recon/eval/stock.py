@@ -52,7 +52,7 @@ import numpy as np
 import pycolmap
 
 from matching.errors import InputError
-from recon.config import DEFAULT_MAX_SIZE, RunConfig
+from recon.config import DEFAULT_MAX_SIZE, RunConfig, SfmConfig
 from recon.core.context import Run
 from recon.core.database import import_scene_images, read_keypoints_opencv, read_verified
 from recon.core.observer import RunObserver, as_observer
@@ -260,16 +260,20 @@ def stock_stages(preset: str) -> list[Any]:
 # the run ----------------------------------------------------------------------------------------
 def run_stock(scene_dir: str | Path, out_dir: str | Path, preset: Preset = "default", pairs: str = "exhaustive",
               max_size: int = DEFAULT_MAX_SIZE, seed: int = 0, camera_mode: str = "auto", workers: int = 0,
-              observer: RunObserver | Sequence[RunObserver] | None = None, progress: bool = False) -> RunReport:
+              observer: RunObserver | Sequence[RunObserver] | None = None, progress: bool = False,
+              sfm: SfmConfig | None = None) -> RunReport:
     """Reconstruct `scene_dir` with COLMAP's own SIFT pipeline into `out_dir` (see module doc).
 
     `workers`: COLMAP threads (0 = all cores). `observer`: the run's events, as for `run_scene`.
+    `sfm`: the mapping options (default: `recon run`'s; `recon compare` passes ours).
     Our own files in `out_dir` (database.db, sparse/, pairs.txt, report.json) are replaced.
     """
     if preset not in PRESETS:
         raise UserError(f"stock preset {preset!r}: choose one of {', '.join(PRESETS)}")
     cfg = RunConfig.from_options(out=out_dir, pairs=pairs, max_size=max_size, seed=seed, camera_mode=camera_mode,
                                  workers=workers, progress=progress)
+    if sfm is not None:
+        cfg.sfm = sfm
     root = Path(scene_dir).expanduser()
     if not root.is_dir():
         raise InputError(f"{root}: no such scene folder")

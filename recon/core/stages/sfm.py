@@ -13,6 +13,8 @@ Options: `sfm.num_threads`, `sfm.scale_thresholds`, `seed`; the mapper's tuned o
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -26,11 +28,21 @@ from recon.core.global_sfm import options_summary as global_options_summary
 from recon.core.report import options_dict
 from recon.core.state import fingerprint
 
+log = logging.getLogger(__name__)
+
 
 def mapping_options(cfg: RunConfig, px_scale: float) -> pycolmap.IncrementalPipelineOptions:
     """`recon.core.sfm.mapping_options` for this run: seeded, pixel thresholds in full-resolution
     px, or scaled by the working-to-full-resolution factor `px_scale` with `sfm.scale_thresholds`."""
     return sfm.mapping_options(cfg.seed, cfg.sfm.num_threads, px_scale if cfg.sfm.scale_thresholds else 1.0)
+
+
+def final_ba_config(cfg: RunConfig, px_scale: float) -> sfm.FinalBaConfig:
+    """The final robust adjustment of this run: `sfm.final_ba_loss` / `final_ba_scale_px`, then
+    the mapper's own reprojection filter (`filter_max_reproj_error`, scaled as the mapper's)."""
+    f = sfm.threshold_scale(px_scale) if cfg.sfm.scale_thresholds else 1.0
+    return sfm.FinalBaConfig(loss=cfg.sfm.final_ba_loss, scale_px=float(cfg.sfm.final_ba_scale_px),
+                             max_reproj_error_px=4.0 * f)
 
 
 def read_model(model_dir: Path) -> pycolmap.Reconstruction | None:
@@ -57,6 +69,7 @@ class Sfm:
             run.report.sfm_options = {"mapper": "global", **global_options_summary(global_options(run.cfg.seed))}
         else:
             run.report.sfm_options = options_dict(mapping_options(run.cfg, run.px_scale()))
+        run.report.sfm_options["final_ba"] = dataclasses.asdict(final_ba_config(run.cfg, run.px_scale()))
         return fingerprint("sfm", run.keys.get("verify"), run.report.sfm_options)
 
     def reuse(self, run: Run, record: dict[str, Any]) -> bool:
@@ -68,6 +81,7 @@ class Sfm:
         report.num_models = int(record.get("num_models", 1))
         report.model_sizes = list(record.get("model_sizes", [rec.num_reg_images()]))
         report.sfm_growth = list(record.get("sfm_growth", []))
+        report.final_ba = dict(record.get("final_ba", {}))
         run.data.reconstruction = rec
         return True
 
@@ -88,8 +102,15 @@ class Sfm:
         report.num_models, report.model_sizes, report.sfm_growth = res.num_models, res.model_sizes, res.growth
         if res.hook_error:
             run.warn(f"the SfM progress hook failed and was switched off: {res.hook_error}")
+        if rec is not None:
+            fba = final_ba_config(run.cfg, run.px_scale())
+            if fba.loss != "none":
+                log.info("final bundle adjustment (%s loss, %.2g px) of %d images, %d points", fba.loss, fba.scale_px,
+                         rec.num_reg_images(), rec.num_points3D())
+            report.final_ba = sfm.final_bundle_adjustment(rec, fba, run.cfg.sfm.num_threads)
         run.data.reconstruction = rec
         if rec is None:
             return None  # nothing to reuse next time
         sfm.write_model_atomic(rec, self.model_dir(run))
-        return {"num_models": res.num_models, "model_sizes": res.model_sizes, "sfm_growth": res.growth}
+        return {"num_models": res.num_models, "model_sizes": res.model_sizes, "sfm_growth": res.growth,
+                "final_ba": report.final_ba}
