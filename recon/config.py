@@ -317,9 +317,11 @@ class SfmConfig:
     (`recon.core.sfm.final_bundle_adjustment`: lower rotation errors on every benchmark scene,
     for ours and for stock COLMAP, which the comparison maps through the same stage)."""
 
-    final_ba_scale_px: float = 0.5
+    final_ba_scale_px: float = 0.0
     """Scale of `final_ba_loss`, full-resolution px: residuals well above it count less than
-    their square (1 px measured about half the gain of 0.5 px, docs/decisions.md)."""
+    their square. 0 = automatic: twice the model's median point error, about 2.4 sigma of its
+    keypoint noise (`recon.core.sfm.AUTO_SCALE_FACTOR`; a fixed 0.5 px suited our models but
+    made stock `high`'s noisier wide-baseline ones worse, docs/decisions.md)."""
 
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS
@@ -332,8 +334,8 @@ class SfmConfig:
         if self.final_ba_loss not in FINAL_BA_LOSSES:
             raise UserError(f"sfm.final_ba_loss {self.final_ba_loss!r}: choose one of {', '.join(FINAL_BA_LOSSES)}")
         if isinstance(self.final_ba_scale_px, bool) or not isinstance(self.final_ba_scale_px, (int, float)) \
-                or not self.final_ba_scale_px > 0:
-            raise UserError(f"sfm.final_ba_scale_px {self.final_ba_scale_px!r}: a number of px > 0")
+                or not self.final_ba_scale_px >= 0:
+            raise UserError(f"sfm.final_ba_scale_px {self.final_ba_scale_px!r}: a number of px >= 0 (0 = automatic)")
 
 
 @dataclass

@@ -123,7 +123,7 @@ def test_set_reaches_the_matcher(tmp_path, capsys, captured):
     ("novalue", "KEY=VALUE"),
     ("match.engine=ray", "threads"),
     ("sfm.final_ba_loss=tukey", "cauchy, soft_l1"),
-    ("sfm.final_ba_scale_px=0", "sfm.final_ba_scale_px"),
+    ("sfm.final_ba_scale_px=-1", "sfm.final_ba_scale_px"),
 ])
 def test_bad_set_is_one_line_exit_2(tmp_path, capsys, captured, setting, text):
     rc, lines = _cli(tmp_path, capsys, "--set", setting)

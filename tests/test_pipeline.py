@@ -98,7 +98,7 @@ def test_end_to_end_registers_every_image(first_run):
     fba = rep.final_ba
     assert fba["applied"] and fba["loss"] == "cauchy" and fba["seconds"] > 0
     assert fba["mean_reprojection_error_after"] == pytest.approx(rep.mean_reprojection_error, abs=1e-4)
-    assert rep.sfm_options["final_ba"]["scale_px"] == 0.5
+    assert rep.sfm_options["final_ba"]["scale_px"] == 0 and fba["auto_scale"] and 0.05 < fba["scale_px"] < 2
     assert not warnings and not rep.skipped
     # features computed once per image and shared by its pairs (SIFT: one store entry per image)
     assert rep.features_computed == rep.num_images

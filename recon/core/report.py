@@ -47,7 +47,7 @@
   model's initial pair, by image id, on the model's first step; null on the others and in runs
   made before version 2) (kept from the run that built the model when the model is reused);
 * `final_ba`: the final robust bundle adjustment (`recon.core.sfm.final_bundle_adjustment`):
-  `loss`, `applied`, and when applied `scale_px`, `mean_reprojection_error_before` / `_after`,
+  `loss`, `applied`, and when applied `scale_px`, `auto_scale`, `mean_reprojection_error_before` / `_after`,
   `observations_dropped` by the mapper's filter afterwards, `seconds`.
 
 Units: seconds (`seconds*`, `stages`), MB = 10^6 bytes (`*_mb`), pixels of the full-resolution

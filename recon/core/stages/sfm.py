@@ -105,7 +105,7 @@ class Sfm:
         if rec is not None:
             fba = final_ba_config(run.cfg, run.px_scale())
             if fba.loss != "none":
-                log.info("final bundle adjustment (%s loss, %.2g px) of %d images, %d points", fba.loss, fba.scale_px,
+                log.info("final bundle adjustment (%s loss) of %d images, %d points", fba.loss,
                          rec.num_reg_images(), rec.num_points3D())
             report.final_ba = sfm.final_bundle_adjustment(rec, fba, run.cfg.sfm.num_threads)
         run.data.reconstruction = rec
