@@ -20,6 +20,9 @@ def _report(**kw) -> RunReport:
                             "unmerged": {"mean_length": 2.0}},
                     merge={"num_keypoints": 900, "track_refine": {"tracks": 100, "aligned": 220, "moved": 200,
                                                                   "median_shift_px": 0.384, "seconds": 0.5}},
+                    final_ba={"loss": "cauchy", "applied": True, "scale_px": 0.4123, "auto_scale": True,
+                              "mean_reprojection_error_before": 0.9021, "mean_reprojection_error_after": 0.84,
+                              "observations_dropped": 3, "seconds": 0.2},
                     seconds_total=12.25, peak_mb=np.float64(812.4),
                     stages={"load": 0.5, "match": np.float32(9.5), "sfm": 2.25},
                     pairs_computed=2, pairs_cached=1, features_computed=4, features_reused=2,
@@ -109,6 +112,7 @@ def test_summary_table_shows_the_headline_numbers():
     assert "3.10 / 2.00" in _row(text, "mean track length (graph, consistent tracks, merged / unmerged)")
     assert "25 %" in _row(text, "observations in inconsistent graph tracks")
     assert "0.840" in _row(text, "mean reprojection error (px)")
+    assert "0.902" in _row(text, "before the final cauchy adjustment (scale 0.41 px)")
     assert "200 / 220 (median 0.38 px)" in _row(text, "observations re-localised by track refinement")
     assert "2 / 1" in _row(text, "pairs (computed / cached)")
     assert "2 / 3" in _row(text, "pairs verified")

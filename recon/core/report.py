@@ -258,6 +258,10 @@ def summary_table(report: RunReport):
                   f"{refined['moved']} / {refined['aligned']} (median {refined['median_shift_px']:.2f} px)")
     err = report.mean_reprojection_error
     t.add_row("mean reprojection error (px)", "-" if err is None else f"{err:.3f}")
+    fba = report.final_ba or {}
+    if fba.get("applied"):
+        t.add_row(f"  before the final {fba['loss']} adjustment (scale {fba['scale_px']:.2f} px)",
+                  f"{fba['mean_reprojection_error_before']:.3f}")
     t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")
     if report.method == "extra-affine":
         t.add_row("pairs with simulated views", f"{report.pairs_simulated} / {len(report.pairs)}")
