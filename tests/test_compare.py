@@ -209,17 +209,24 @@ def test_run_scenes_unknown_scene(facade):
 
 
 @pytest.mark.slow
-def test_compare_scene_applies_settings_to_ours_only(facade, tmp_path):
+def test_compare_scene_applies_settings_to_ours_and_mapping_settings_to_both(facade, tmp_path):
     """`settings` (`recon run --set` strings; bench_scenes' --set) reach our run's config and the
-    comparison's record; a bad one is a UserError before anything runs."""
+    comparison's record, and the `sfm.*` ones stock's too (both map the same way); a bad one is
+    a UserError before anything runs."""
     from recon.errors import UserError
 
     with pytest.raises(UserError):
         compare_scene(facade, tmp_path / "bad", settings=["matcher.adaptive"])
     assert not (tmp_path / "bad" / "extra_affine").exists()
-    res = compare_scene(facade, tmp_path / "o", max_size=SIZE[0], settings=["matcher.adaptive=true"])
-    assert res["config"]["settings"] == ["matcher.adaptive=true"]
+    settings = ["matcher.adaptive=true", "sfm.final_ba_loss=none"]
+    res = compare_scene(facade, tmp_path / "o", max_size=SIZE[0], settings=settings)
+    assert res["config"]["settings"] == settings
     ours = json.loads((tmp_path / "o" / "extra_affine" / "report.json").read_text())
+    stock = json.loads((tmp_path / "o" / "stock-default" / "report.json").read_text())
     assert ours["config"]["match"]["matcher"] == {"adaptive": True}
+    assert stock["config"]["match"]["matcher"] == {}
+    off = {"loss": "none", "applied": False}
+    assert ours["config"]["sfm"]["final_ba_loss"] == stock["config"]["sfm"]["final_ba_loss"] == "none"
+    assert ours["final_ba"] == off and stock["final_ba"] == (off if stock["registered_images"] else {})
     assert {p["path"] for p in ours["pairs"]} <= {"originals", "targeted", "full"}
     assert not any(p["path_reason"].startswith("adaptive off") for p in ours["pairs"])
