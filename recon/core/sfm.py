@@ -262,7 +262,7 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     majority in charge. Measured on finished models (docs/decisions.md, "Final robust bundle
     adjustment"): the difficulty curve's median relative rotation error falls 2-7x from 13° to
     52° (52°: 0.131 -> 0.045°, 0.233 -> 0.030°), castle_P30's from 0.459° to 0.436°,
-    fountain_P11's from 0.2405° to 0.236°; stock COLMAP's models gain as well (castle 0.442° ->
+    fountain_P11's from 0.2405° to 0.235°; stock COLMAP's models gain as well (castle 0.442° ->
     0.439°), and the stock comparison maps through this same stage. The scale is the model's
     own rather than a fixed 0.5 px: stock `high`'s 52° model of the difficulty curve (median
     point error 0.81 px) went from 0.146° to 0.298° under 0.5 px and to 0.098° under its own."""

@@ -24,7 +24,8 @@ Stages (see `recon.core.stages` for the shared ones):
   add quadratic-overlap pairs). COLMAP matches and verifies in one call, so there is no
   separate `verify` stage (and no `tracks`: stock keypoints are per image already);
 * `sfm`, `export`: ours (`recon.core.stages.sfm.mapping_options`: the same mapper options and
-  pixel thresholds, COLMAP's full-resolution ones unless `sfm.scale_thresholds`; COLMAP's SIFT
+  pixel thresholds, COLMAP's full-resolution ones unless `sfm.scale_thresholds`, and the same
+  final robust adjustment, `recon.core.sfm.final_bundle_adjustment`; COLMAP's SIFT
   runs on the image downscaled to `max_size` and writes keypoints in full-resolution pixels,
   exactly like our matcher), without points.ply.
 

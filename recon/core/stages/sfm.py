@@ -1,14 +1,16 @@
 """Stage `sfm`: incremental mapping of `OUT/database.db` into a sparse model (`recon.core.sfm`).
 
 Needs: `scene`, `image_ids` (and `OUT/database.db`, verified). Makes: `reconstruction`, the
-largest model (or None), written to `OUT/sparse/0` through a temporary folder. Each
+largest model (or None), adjusted once more under a robust loss (`final_bundle_adjustment`,
+`report.final_ba`) and written to `OUT/sparse/0` through a temporary folder. Each
 registration step is an `on_sfm_step` event (the live model) and a step of the progress bar.
 
-Key: the verify stage's key and every mapper option (pycolmap's `todict()`, which holds the
-seed). Reused when unchanged and `sparse/0` can be read; the number of models, their sizes and
-the registration order come back from the state record (a reused model has no growth events).
-Options: `sfm.num_threads`, `sfm.scale_thresholds`, `seed`; the mapper's tuned options are in
-`recon.core.sfm`.
+Key: the verify stage's key, every mapper option (pycolmap's `todict()`, which holds the
+seed) and the final adjustment's. Reused when unchanged and `sparse/0` can be read; the number
+of models, their sizes, the registration order and the final adjustment's summary come back from
+the state record (a reused model has no growth events). Options: `sfm.num_threads`,
+`sfm.scale_thresholds`, `sfm.final_ba_loss`, `sfm.final_ba_scale_px`, `seed`; the mapper's tuned
+options are in `recon.core.sfm`.
 """
 
 from __future__ import annotations
