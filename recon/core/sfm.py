@@ -266,10 +266,10 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     0.439°), and the stock comparison maps through this same stage. The scale is the model's
     own rather than a fixed 0.5 px: stock `high`'s 52° model of the difficulty curve (median
     point error 0.81 px) went from 0.146° to 0.298° under 0.5 px and to 0.098° under its own."""
-    before = float(rec.compute_mean_reprojection_error())
     if cfg.loss == "none" or rec.num_reg_images() < 2 or rec.num_points3D() == 0:
         return {"loss": cfg.loss, "applied": False}
     t0 = time.perf_counter()
+    before = float(rec.compute_mean_reprojection_error())
     scale = float(cfg.scale_px)
     if scale <= 0:
         scale = AUTO_SCALE_FACTOR * float(np.median([p.error for p in rec.points3D.values()]))

@@ -41,10 +41,11 @@ def mapping_options(cfg: RunConfig, px_scale: float) -> pycolmap.IncrementalPipe
 
 def final_ba_config(cfg: RunConfig, px_scale: float) -> sfm.FinalBaConfig:
     """The final robust adjustment of this run: `sfm.final_ba_loss` / `final_ba_scale_px`, then
-    the mapper's own reprojection filter (`filter_max_reproj_error`, scaled as the mapper's)."""
-    f = sfm.threshold_scale(px_scale) if cfg.sfm.scale_thresholds else 1.0
+    the incremental mapper's own filter (its `filter_max_reproj_error`, `filter_min_tri_angle`)."""
+    m = mapping_options(cfg, px_scale).mapper
     return sfm.FinalBaConfig(loss=cfg.sfm.final_ba_loss, scale_px=float(cfg.sfm.final_ba_scale_px),
-                             max_reproj_error_px=4.0 * f)
+                             max_reproj_error_px=float(m.filter_max_reproj_error),
+                             min_tri_angle_deg=float(m.filter_min_tri_angle))
 
 
 def read_model(model_dir: Path) -> pycolmap.Reconstruction | None:
