@@ -186,3 +186,10 @@ def test_a_real_run_names_its_initial_pair_and_writes_absolute_paths(corner_sift
     assert all(g["initial_pair"] is None for g in data["sfm_growth"][1:] if g["model"] == first["model"])
     assert all("two_view_config" in p and "config" not in p for p in data["pairs"])
     assert any(p["two_view_config"] for p in data["pairs"])
+
+
+def test_rerun_summary_names_the_final_adjustment_when_it_ran():
+    from recon.viz.rerun_log import summary_markdown
+
+    assert "| before the final cauchy adjustment (scale 0.41 px) | 0.902 |" in summary_markdown(_report())
+    assert "before the final" not in summary_markdown(_report(final_ba={"loss": "none", "applied": False}))
