@@ -233,6 +233,16 @@ def options_dict(options: Any) -> dict[str, Any]:
     return plain(options.todict())
 
 
+def final_ba_row(report: RunReport) -> tuple[str, str] | None:
+    """(label, value) of the reprojection error before the final robust adjustment, for the
+    summaries (console and Rerun); None when the step did not run."""
+    fba = report.final_ba or {}
+    if not fba.get("applied"):
+        return None
+    return (f"before the final {fba['loss']} adjustment (scale {fba['scale_px']:.2f} px)",
+            f"{fba['mean_reprojection_error_before']:.3f}")
+
+
 def summary_table(report: RunReport):
     """A rich Table with the headline numbers and seconds per stage."""
     from rich.table import Table
@@ -258,10 +268,9 @@ def summary_table(report: RunReport):
                   f"{refined['moved']} / {refined['aligned']} (median {refined['median_shift_px']:.2f} px)")
     err = report.mean_reprojection_error
     t.add_row("mean reprojection error (px)", "-" if err is None else f"{err:.3f}")
-    fba = report.final_ba or {}
-    if fba.get("applied"):
-        t.add_row(f"  before the final {fba['loss']} adjustment (scale {fba['scale_px']:.2f} px)",
-                  f"{fba['mean_reprojection_error_before']:.3f}")
+    before_final_ba = final_ba_row(report)
+    if before_final_ba:
+        t.add_row(f"  {before_final_ba[0]}", before_final_ba[1])
     t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")
     if report.method == "extra-affine":
         t.add_row("pairs with simulated views", f"{report.pairs_simulated} / {len(report.pairs)}")

@@ -73,6 +73,7 @@ from numpy.typing import NDArray
 
 from matching.types import PairResult
 from recon.core.observer import BaseRunObserver
+from recon.core.report import final_ba_row
 
 RECORDING_NAME = "recording.rrd"
 SINK_KINDS = ("save", "spawn", "connect", "none")
@@ -444,18 +445,10 @@ def pair_markdown(name0: str, name1: str, r: PairResult, cached: bool, verified:
     return "\n".join(lines) + "\n"
 
 
-def _final_ba_rows(report: Any) -> list[str]:
-    """The summary's row for the final robust adjustment (`report.final_ba`), when it ran."""
-    fba = getattr(report, "final_ba", None) or {}
-    if not fba.get("applied"):
-        return []
-    return [f"| before the final {fba['loss']} adjustment (scale {fba['scale_px']:.2f} px) | "
-            f"{fba['mean_reprojection_error_before']:.3f} |"]
-
-
 def summary_markdown(report: Any) -> str:
     err = report.mean_reprojection_error
     verified = sum(1 for p in report.pairs if p.verified_inliers > 0)
+    before_final_ba = final_ba_row(report)
     lines = [f"# recon run: {Path(report.scene).name}", "",
              f"**status:** {report.status}" + (f" — {report.message}" if report.message else ""), "",
              "| metric | value |", "|---|---:|",
@@ -464,7 +457,7 @@ def summary_markdown(report: Any) -> str:
              f"| 3D points | {report.num_points3D} |",
              f"| mean track length (model) | {report.mean_track_length:.2f} |",
              f"| mean reprojection error (px) | {'-' if err is None else f'{err:.3f}'} |",
-             *_final_ba_rows(report),
+             *([f"| {before_final_ba[0]} | {before_final_ba[1]} |"] if before_final_ba else []),
              f"| models (sizes) | {report.num_models} ({', '.join(map(str, report.model_sizes)) or '-'}) |",
              f"| pairs verified | {verified} / {len(report.pairs)} |",
              f"| pairs computed / cached | {report.pairs_computed} / {report.pairs_cached} |",
