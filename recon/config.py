@@ -113,7 +113,7 @@ class PairsConfig:
             raise UserError(str(e)) from None
 
 
-SIMULATE = ("all", "needed")
+SIMULATE = ("auto", "all", "needed")
 """`match.simulate`'s values (`MatchConfig.simulate`)."""
 
 FIRST_PASS_DETECTORS = ("sift", "colmap-sift-plain", "colmap-sift-affine", "colmap-sift")
@@ -135,19 +135,25 @@ class MatchConfig:
     cluster of --workers processes) or dask:ADDRESS (an existing Dask scheduler)."""
 
     adaptive_above: int = 30
-    """Scenes with more images than this run the extra-affine matcher's adaptive per-pair paths
+    """Scenes with more images than this are large captures: `--simulate auto` runs them as
+    `needed`, and the extra-affine matcher's pairs take its adaptive per-pair paths
     (`matching.adaptive`, the `adaptive` preset: pairs whose originals already match well skip the
     simulated views) unless `matcher.adaptive` is set; 0 = never. Large captures are mostly easy
     neighbouring pairs, where the full grid costs time for nothing (README, "Scale"); small ones
     keep the full grid, which measures best on wide baselines. 30, not `--pairs auto`'s 20: the
     benchmark scenes of up to 30 images keep the full grid they were measured with."""
 
-    simulate: str = field(default="all", metadata={"flag": "--simulate", "choices": "recon.config:SIMULATE"})
+    simulate: str = field(default="auto", metadata={"flag": "--simulate", "choices": "recon.config:SIMULATE"})
     """Which pairs the extra-affine matcher simulates views for: all = every pair (the full
     grid, or the adaptive paths); needed = every pair's originals first (OpenCV SIFT, no view),
     then view simulation only on the pairs they leave weak and the scene needs: an image with
     few strong partners, or a bridge between parts of the strong pair graph
-    (`recon.core.schedule`)."""
+    (`recon.core.schedule`); auto = needed for scenes of more than `adaptive_above` images, all
+    for smaller ones (`recon.core.stages.match.simulate_mode`; `report.simulate_used`). On the
+    rendered 50-view walk `needed` gave the default's rotation error at 0.43x its time once the
+    final robust adjustment was in; on scenes of up to 30 images `all` keeps 1.1-2.4x the
+    verified inliers and the smaller errors at the wide steps (docs/decisions.md, "`--simulate
+    auto`")."""
 
     simulate_strong_inliers: int = 100
     """`simulate = needed`: a pair whose originals verify at least this many matches is strong."""
@@ -196,7 +202,7 @@ class MatchConfig:
             raise UserError(f"--method {self.method!r}: choose one of {', '.join(METHODS)}")
         check_engine(self.engine)
         if self.simulate not in SIMULATE:
-            raise UserError(f"--simulate {self.simulate!r}: choose all or needed")
+            raise UserError(f"--simulate {self.simulate!r}: choose auto, all or needed")
         if self.first_pass_detector not in FIRST_PASS_DETECTORS:
             raise UserError(f"match.first_pass_detector {self.first_pass_detector!r}: choose one of "
                             f"{', '.join(FIRST_PASS_DETECTORS)}")

@@ -136,6 +136,7 @@ def test_extra_affine_reconstructs_the_wide_corner_close_to_ground_truth(tmp_pat
     out = tmp_path / "out"
     rep = run_scene(scene, RunConfig.from_options(out=out, progress=False))  # method: extra-affine
     assert rep.ok and rep.registered_images == rep.num_images == 4
+    assert rep.simulate_used == "all"  # `--simulate auto` on a small scene: every pair simulated
     rec = pycolmap.Reconstruction()
     rec.read(str(out / "sparse" / "0"))
     ev = evaluate_model(rec, find_gt(scene))

@@ -133,13 +133,13 @@ def test_first_pass_detects_each_original_once_and_the_database_takes_that_set(c
     store = _store(corner_scene, a, b)
     ExtraAffineMatcher(cfg).match(store, a, b)
     assert list(target_features(store, b, cfg.fine).parts) == [cfg.fine.originals_detector.key] == ["sift0c0.02"]
-    assert descriptor_detector(MatchConfig(simulate="needed")) == cfg.fine.originals_detector
-    assert descriptor_detector(MatchConfig()).key == "sift0"  # `--simulate all`: the reference decision's set
-    assert descriptor_detector(MatchConfig(simulate="needed", first_pass_detector="colmap-sift-plain")).key == "sift0"
+    assert descriptor_detector(MatchConfig(simulate="needed"), 10) == cfg.fine.originals_detector
+    assert descriptor_detector(MatchConfig(), 10).key == "sift0"  # `auto` on 10 images = `all`: the reference decision's set
+    assert descriptor_detector(MatchConfig(simulate="needed", first_pass_detector="colmap-sift-plain"), 10).key == "sift0"
     budget = MatchConfig(simulate="needed", matcher={"fine": {"sift_features": 5000}})
-    assert descriptor_detector(budget).key == "sift5000c0.02"  # the first pass's own set, options and all
+    assert descriptor_detector(budget, 10).key == "sift5000c0.02"  # the first pass's own set, options and all
     rooted = MatchConfig(simulate="needed", matcher={"fine": {"root_sift": True}})
-    assert descriptor_detector(rooted).key == "sift0"  # the database's descriptors are rooted from plain ones
+    assert descriptor_detector(rooted, 10).key == "sift0"  # the database's descriptors are rooted from plain ones
 
 
 def test_first_pass_cross_check_keeps_the_mutual_nearest_neighbours(corner_scene):
@@ -178,6 +178,24 @@ def test_first_pass_defers_a_grazing_pair(facade_extreme_scene):
     assert r.coarse_scores == []
 
 
+def test_auto_is_needed_above_the_large_capture_size_and_all_below():
+    from recon.config import MatchConfig
+    from recon.core.stages.database import descriptor_detector
+    from recon.core.stages.match import simulate_mode
+
+    auto = MatchConfig()  # simulate = "auto", adaptive_above = 30
+    assert auto.simulate == "auto"
+    assert [simulate_mode(auto, n) for n in (2, 30, 31, 500)] == ["all", "all", "needed", "needed"]
+    assert simulate_mode(auto, None) == "all"
+    assert simulate_mode(MatchConfig(adaptive_above=0), 500) == "all"  # 0 = never a large capture
+    assert simulate_mode(MatchConfig(adaptive_above=5), 6) == "needed"
+    assert simulate_mode(MatchConfig(simulate="needed"), 3) == "needed"  # explicit choices win
+    assert simulate_mode(MatchConfig(simulate="all"), 500) == "all"
+    assert simulate_mode(MatchConfig(method="sift", simulate="needed"), 500) == "all"  # nothing to simulate
+    # the database's descriptors follow the resolved mode: the first pass's set on a large scene
+    assert descriptor_detector(auto, 31).key == "sift0c0.02" and descriptor_detector(auto, 30).key == "sift0"
+
+
 # --- the stage ------------------------------------------------------------------------------------
 @pytest.mark.slow
 def test_recon_run_simulates_only_the_pairs_the_scene_needs_and_resumes_from_both_passes(
@@ -197,9 +215,13 @@ def test_recon_run_simulates_only_the_pairs_the_scene_needs_and_resumes_from_bot
 
     # the easy corner: its neighbouring pairs are strong, the rest are decided by the graph
     out = tmp_path / "corner"
-    cfg = RunConfig.from_options(out=out, progress=False, simulate="needed", workers=1)
+    # `--simulate auto` (the default) on a scene above `match.adaptive_above` images is `needed`
+    # (the second pass's matcher kept off the adaptive paths the large-capture size also selects)
+    cfg = RunConfig.from_options(out=out, progress=False, workers=1,
+                                 **{"match.adaptive_above": 3, "matcher.adaptive": False})
+    assert cfg.match.simulate == "auto"
     rep = run_scene(corner_scene, cfg)
-    assert rep.ok and rep.registered_images == rep.num_images >= 4
+    assert rep.ok and rep.registered_images == rep.num_images >= 4 and rep.simulate_used == "needed"
     data = json.loads((out / "report.json").read_text())
     paths = [p["path"] for p in data["pairs"]]
     assert paths.count("originals") >= 3

@@ -183,7 +183,7 @@ def scenes_cmd(
     max_size: Annotated[int, typer.Option("--max-size", help="Working resolution (longer side, px; 0 = full).")]
         = DEFAULT_MAX_SIZE,
     pairs: Annotated[str, typer.Option("--pairs", help="Pair selection for both pipelines.")] = "exhaustive",
-    simulate: Annotated[str, simulate_option()] = "all",
+    simulate: Annotated[str, simulate_option()] = "auto",
     settings: Annotated[Optional[list[str]], set_option()] = None,
     seed: Annotated[int, seed_option()] = 0,
     workers: Annotated[int, workers_option()] = 0,

@@ -36,7 +36,7 @@ def register(app: typer.Typer) -> None:
                                                                  "(longer side, px; 0 = full).")] = DEFAULT_MAX_SIZE,
         pairs: Annotated[str, typer.Option("--pairs", help="exhaustive, sequential:K, or a file of name pairs.")]
             = "exhaustive",
-        simulate: Annotated[str, simulate_option()] = "all",
+        simulate: Annotated[str, simulate_option()] = "auto",
         settings: Annotated[Optional[list[str]], set_option()] = None,
         seed: Annotated[int, seed_option()] = 0,
         workers: Annotated[int, workers_option()] = 0,

@@ -57,13 +57,14 @@ def flag(*names: str, help: str) -> Any:
     return typer.Option(*names, help=help, metavar="")
 
 
-SIMULATE_HELP = ("Which pairs our pipeline simulates views for: all (every pair, the default of recon run) or "
-                 "needed (every pair's originals first, then only the weak pairs the scene needs).")
+SIMULATE_HELP = ("Which pairs our pipeline simulates views for: auto (recon run's default: needed above "
+                 "match.adaptive_above images, else all), all (every pair) or needed (every pair's originals "
+                 "first, then only the weak pairs the scene needs).")
 SET_HELP = "A `recon run --set KEY=VALUE` for our pipeline (repeatable)."
 
 
 def simulate_option() -> Any:
-    """`--simulate all|needed` of the commands that run our pipeline beside stock COLMAP."""
+    """`--simulate auto|all|needed` of the commands that run our pipeline beside stock COLMAP."""
     from recon.config import SIMULATE
 
     return typer.Option("--simulate", help=SIMULATE_HELP, metavar=choices_metavar(SIMULATE))

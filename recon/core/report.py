@@ -31,7 +31,8 @@
   `camera_mode_used`, `pairs_computed`, `pairs_cached`, `pairs_expanded` (`+expand:E`: the
   pairs each match-graph expansion round added; they are part of `pairs`), `pairs_simulated`
   (extra-affine pairs whose matching simulated views: paths `targeted` and `full`, not
-  `originals` or `deferred`; see `match.simulate`),
+  `originals` or `deferred`; see `match.simulate`), `simulate_used` (`match.simulate` resolved for
+  the scene: `all` or `needed`, `auto` being `needed` above `match.adaptive_above` images),
   `features_computed` / `features_reused` (FeatureStore entries: each image's features are
   computed once per run and shared by all its pairs), `database_reused`, `model_reused`,
   `merge` (keypoint merging counts), `scene`, `out`;
@@ -115,6 +116,7 @@ class RunReport:
     pairs_cached: int = 0
     pairs_expanded: list[int] = field(default_factory=list)  # match-graph expansion: new pairs per round
     pairs_simulated: int = 0  # extra-affine pairs whose matching simulated views (path "targeted" or "full")
+    simulate_used: str = ""  # extra-affine: `match.simulate` resolved for the scene ("all" / "needed"); "" other methods
     features_computed: int = 0  # FeatureStore entries computed this run (one per image and kind)
     features_reused: int = 0  # entries served from memory or the disk cache
     camera_mode_used: str = ""
@@ -273,7 +275,8 @@ def summary_table(report: RunReport):
         t.add_row(f"  {before_final_ba[0]}", before_final_ba[1])
     t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")
     if report.method == "extra-affine":
-        t.add_row("pairs with simulated views", f"{report.pairs_simulated} / {len(report.pairs)}")
+        mode = f" (--simulate {report.simulate_used})" if report.simulate_used else ""
+        t.add_row("pairs with simulated views", f"{report.pairs_simulated} / {len(report.pairs)}{mode}")
     if report.pairs_expanded:
         t.add_row("  of which from match-graph expansion (per round)", " + ".join(map(str, report.pairs_expanded)))
     verified = sum(1 for p in report.pairs if p.verified_inliers > 0)

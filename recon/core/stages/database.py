@@ -52,18 +52,19 @@ def with_descriptors(run: Run) -> bool:
     return (run.report.method or run.cfg.match.method) in SIFT_METHODS
 
 
-def descriptor_detector(cfg: MatchConfig) -> DetectorConfig:
+def descriptor_detector(cfg: MatchConfig, num_images: int | None) -> DetectorConfig:
     """The OpenCV SIFT set of each original whose descriptors the database takes
     (`recon.core.descriptors`): the one the matcher has in the feature store already (a resumed
     run finds it in the feature cache). By default the reference decision's, OpenCV's default
-    SIFT; under `--simulate needed` with OpenCV's SIFT in the first pass, that pass's set (a lower
-    contrast threshold: the default set's keypoints and more), which every image has, where the
-    default set would be a second detection of every image that no pair simulates (unless that
-    set is RootSIFT: the database roots plain descriptors itself)."""
+    SIFT; under `--simulate needed` (or `auto` on a large scene: `simulate_mode` of
+    `num_images`) with OpenCV's SIFT in the first pass, that pass's set (a lower contrast
+    threshold: the default set's keypoints and more), which every image has, where the default
+    set would be a second detection of every image that no pair simulates (unless that set is
+    RootSIFT: the database roots plain descriptors itself)."""
     from matching.features import DetectorConfig
-    from recon.core.stages.match import first_pass_overrides, make_matcher
+    from recon.core.stages.match import first_pass_overrides, make_matcher, simulate_mode
 
-    if cfg.method == "extra-affine" and cfg.simulate == "needed" and cfg.first_pass_detector == "sift":
+    if simulate_mode(cfg, num_images) == "needed" and cfg.first_pass_detector == "sift":
         det: DetectorConfig = make_matcher(cfg, extra=first_pass_overrides(cfg)).cfg.fine.originals_detector  # type: ignore[attr-defined]
         if not det.root_sift:
             return det
@@ -80,7 +81,7 @@ def write_sift_descriptors(run: Run, db_path: Path, ids: dict[str, int]) -> None
     from recon.core.descriptors import sift_descriptors
 
     d = run.data
-    det = descriptor_detector(run.cfg.match)
+    det = descriptor_detector(run.cfg.match, len(d.scene.images))
     db = pycolmap.Database.open(str(db_path))
     try:
         with pycolmap.DatabaseTransaction(db):
@@ -107,7 +108,7 @@ class Database:
         model = run.cfg.database.camera_model  # in the key only when not the default: older caches stay valid
         from matching.features import DetectorConfig
 
-        det = descriptor_detector(run.cfg.match)  # named only when not the default: older caches stay valid
+        det = descriptor_detector(run.cfg.match, len(d.scene.images))  # named only when not the default: older caches stay valid
         descriptors = ["sift-descriptors-1"] + ([det.key] if det != DetectorConfig("sift") else [])
         extra = ([model] if model != CAMERA_MODELS[0] else []) + (descriptors if with_descriptors(run) else [])
         return fingerprint("database", run.cfg.database.camera_mode, *extra,

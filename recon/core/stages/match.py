@@ -11,7 +11,8 @@ has none and always runs. Results are collected in pair order, never completion 
 fixed seed gives the same output whatever the scheduling. One failing pair is a warning and an
 empty result, never the end of the run.
 
-With `--simulate needed` (`match.simulate`) the pairs run in two passes: every pair's
+With `--simulate needed` (`match.simulate`; `auto`, the default, is `needed` above
+`match.adaptive_above` images, `simulate_mode`) the pairs run in two passes: every pair's
 originals first (`first_pass_overrides`: nothing simulated), then the default matcher on the
 weak pairs the strong-pair graph needs (`recon.core.schedule`; a pair needed only as a bridge
 between parts of that graph with the first pass's originals, `bridge_overrides`); each pass has
@@ -103,6 +104,19 @@ def uses_adaptive_paths(cfg: MatchConfig, num_images: int | None) -> bool:
             and num_images is not None and num_images > cfg.adaptive_above)
 
 
+def simulate_mode(cfg: MatchConfig, num_images: int | None) -> str:
+    """`match.simulate` resolved for a scene of `num_images` images: "needed" or "all". `auto`
+    is "needed" for the extra-affine matcher on more than `cfg.adaptive_above` images (a large
+    capture, mostly easy neighbouring pairs; 0 = never) and "all" otherwise. Other methods
+    simulate nothing, so "needed" is only kept for the extra-affine matcher."""
+    if cfg.method != "extra-affine":
+        return "all"
+    if cfg.simulate == "auto":
+        large = cfg.adaptive_above > 0 and num_images is not None and num_images > cfg.adaptive_above
+        return "needed" if large else "all"
+    return cfg.simulate
+
+
 def make_matcher(cfg: MatchConfig | str, seed: int = 0, inner_workers: int = 1,
                  num_images: int | None = None, extra: dict[str, Any] | None = None) -> PairMatcher:
     """The registry's matcher for multi-view use, built from `matcher_overrides` (see there) and
@@ -190,6 +204,8 @@ class Match:
         report = run.report
         report.pairs_cached = int(sum(cached))
         report.pairs_simulated = int(sum(1 for r in run.data.results if r.path in ("targeted", "full")))
+        if cfg.match.method == "extra-affine":
+            report.simulate_used = simulate_mode(cfg.match, len(run.data.scene.images))
         report.pairs_computed = len(pairs) - report.pairs_cached
         report.features_computed, report.features_reused = int(store.misses), int(store.hits)
         if store.persist_error is not None:
@@ -246,7 +262,7 @@ class Match:
                      ) -> tuple[list[PairResult], list[bool]]:
         """The pairs `run.data.pairs[first:]` under `match.simulate` (one pass for "all", two for
         "needed", `_match_needed`); their results and cache flags in pair order."""
-        if run.cfg.match.simulate == "needed" and run.cfg.match.method == "extra-affine":
+        if simulate_mode(run.cfg.match, len(run.data.scene.images)) == "needed":
             return Match._match_needed(run, matcher, pair_dir, first)
         return Match._match_all(run, matcher, pair_dir, first)
 
