@@ -151,7 +151,7 @@ class MatchConfig:
     (`recon.core.schedule`); auto = needed for scenes of more than `adaptive_above` images, all
     for smaller ones (`recon.core.stages.match.simulate_mode`; `report.simulate_used`). On the
     rendered 50-view walk `needed` gave the default's rotation error at 0.43x its time once the
-    final robust adjustment was in; on scenes of up to 30 images `all` keeps 1.1-2.4x the
+    final robust adjustment was in; on scenes of up to 30 images `all` keeps 1.2-2.4x the
     verified inliers and the smaller errors at the wide steps (docs/decisions.md, "`--simulate
     auto`")."""
 
