@@ -97,23 +97,27 @@ def matcher_overrides(cfg: MatchConfig | str, seed: int = 0, inner_workers: int 
     return overrides
 
 
+def is_large_capture(cfg: MatchConfig, num_images: int | None) -> bool:
+    """More than `cfg.adaptive_above` images (0 = never): the size at which the adaptive paths
+    and `--simulate auto`'s `needed` switch on."""
+    return cfg.adaptive_above > 0 and num_images is not None and num_images > cfg.adaptive_above
+
+
 def uses_adaptive_paths(cfg: MatchConfig, num_images: int | None) -> bool:
-    """Whether the scene's size alone switches the adaptive paths on: more than
-    `cfg.adaptive_above` images (0 = never) and no explicit `matcher.adaptive`."""
-    return (cfg.method == "extra-affine" and "adaptive" not in cfg.matcher and cfg.adaptive_above > 0
-            and num_images is not None and num_images > cfg.adaptive_above)
+    """Whether the scene's size alone switches the adaptive paths on: a large capture
+    (`is_large_capture`) and no explicit `matcher.adaptive`."""
+    return cfg.method == "extra-affine" and "adaptive" not in cfg.matcher and is_large_capture(cfg, num_images)
 
 
 def simulate_mode(cfg: MatchConfig, num_images: int | None) -> str:
     """`match.simulate` resolved for a scene of `num_images` images: "needed" or "all". `auto`
-    is "needed" for the extra-affine matcher on more than `cfg.adaptive_above` images (a large
-    capture, mostly easy neighbouring pairs; 0 = never) and "all" otherwise. Other methods
-    simulate nothing, so "needed" is only kept for the extra-affine matcher."""
+    is "needed" for the extra-affine matcher on a large capture (`is_large_capture`: mostly easy
+    neighbouring pairs) and "all" otherwise. Other methods simulate nothing, so "needed" is only
+    kept for the extra-affine matcher."""
     if cfg.method != "extra-affine":
         return "all"
     if cfg.simulate == "auto":
-        large = cfg.adaptive_above > 0 and num_images is not None and num_images > cfg.adaptive_above
-        return "needed" if large else "all"
+        return "needed" if is_large_capture(cfg, num_images) else "all"
     return cfg.simulate
 
 
