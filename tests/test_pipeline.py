@@ -99,6 +99,10 @@ def test_end_to_end_registers_every_image(first_run):
     assert fba["applied"] and fba["loss"] == "cauchy" and fba["seconds"] > 0
     assert fba["mean_reprojection_error_after"] == pytest.approx(rep.mean_reprojection_error, abs=1e-4)
     assert rep.sfm_options["final_ba"]["scale_px"] == 0 and fba["auto_scale"] and 0.05 < fba["scale_px"] < 2
+    # its outlier pass: a threshold of three loss scales of the adjusted model, the 4 px filter's at most
+    assert rep.sfm_options["final_ba"]["outlier_scales"] == 3.0
+    assert fba["outlier_threshold_px"] == pytest.approx(min(4.0, 3 * fba["second_scale_px"]), abs=1e-3)
+    assert fba["outliers_dropped"] > 0
     assert not warnings and not rep.skipped
     # features computed once per image and shared by its pairs (SIFT: one store entry per image)
     assert rep.features_computed == rep.num_images

@@ -193,3 +193,7 @@ def test_rerun_summary_names_the_final_adjustment_when_it_ran():
 
     assert "| before the final cauchy adjustment (scale 0.41 px) | 0.902 |" in summary_markdown(_report())
     assert "before the final" not in summary_markdown(_report(final_ba={"loss": "none", "applied": False}))
+    with_outliers = _report(final_ba={"loss": "cauchy", "applied": True, "scale_px": 0.4123, "auto_scale": True,
+                                      "mean_reprojection_error_before": 0.902, "outlier_threshold_px": 1.1,
+                                      "second_scale_px": 0.3667, "outliers_dropped": 57})
+    assert "(scale 0.41 px, 57 observations over 1.10 px dropped) | 0.902 |" in summary_markdown(with_outliers)

@@ -216,6 +216,37 @@ def test_final_robust_adjustment_resists_observations_a_few_px_off(tmp_path):
     assert robust_rot < 0.5 * squared_rot and robust_rot < 1.5 * clean_rot
 
 
+def test_outlier_pass_drops_the_observations_the_loss_discounts_and_keeps_the_rest(tmp_path):
+    """The same 3 px moves on 5 % of the observations (noise 0.3 px: about 4 loss scales off):
+    one pass keeps them all under the 4 px filter, the outlier pass drops nearly all of them and
+    little else, at a lower reprojection error and no worse poses."""
+    db = tmp_path / "database.db"
+    gt = synthesize(db, num_frames=8, num_points3D=300, keypoint_noise_px=0.3)
+    rec = _map(db).reconstruction
+    rng = np.random.default_rng(1)
+    moved: set[tuple[int, int]] = set()
+    for image_id in sorted(rec.reg_image_ids()):
+        for idx, p in enumerate(rec.image(image_id).points2D):
+            if p.has_point3D() and rng.random() < 0.05:
+                p.xy = p.xy + np.array([0.0, 3.0])
+                moved.add((image_id, idx))
+    assert len(moved) > 80
+    one, two = _copy_model(rec, tmp_path / "one"), _copy_model(rec, tmp_path / "two")
+    s1 = final_bundle_adjustment(one, FinalBaConfig(outlier_scales=0))
+    s2 = final_bundle_adjustment(two, FinalBaConfig())
+    assert "outlier_threshold_px" not in s1 and s1["observations_dropped"] < 0.1 * len(moved)
+    assert 1.0 < s2["outlier_threshold_px"] < 3.0 and s2["outlier_threshold_px"] == pytest.approx(3 * s2["second_scale_px"])
+
+    def kept(m: pycolmap.Reconstruction) -> set[tuple[int, int]]:
+        return {(i, k) for i in m.reg_image_ids() for k, p in enumerate(m.image(i).points2D) if p.has_point3D()}
+
+    gone_moved = len(moved - kept(two))
+    gone_clean = len((kept(one) | moved) - kept(two)) - gone_moved
+    assert gone_moved > 0.9 * len(moved) and gone_clean < 0.02 * len(kept(one))
+    assert two.compute_mean_reprojection_error() < 0.8 * one.compute_mean_reprojection_error()
+    assert pose_errors(two, gt)[0] <= 1.1 * pose_errors(one, gt)[0]
+
+
 def test_final_adjustment_off_leaves_the_model_as_the_mapper_made_it(tmp_path):
     db = tmp_path / "database.db"
     synthesize(db, keypoint_noise_px=0.5)

@@ -241,7 +241,9 @@ def final_ba_row(report: RunReport) -> tuple[str, str] | None:
     fba = report.final_ba or {}
     if not fba.get("applied"):
         return None
-    return (f"before the final {fba['loss']} adjustment (scale {fba['scale_px']:.2f} px)",
+    outliers = (f", {fba['outliers_dropped']} observations over {fba['outlier_threshold_px']:.2f} px dropped"
+                if "outlier_threshold_px" in fba else "")
+    return (f"before the final {fba['loss']} adjustment (scale {fba['scale_px']:.2f} px{outliers})",
             f"{fba['mean_reprojection_error_before']:.3f}")
 
 

@@ -236,6 +236,12 @@ FINAL_BA_LOSSES = ("none", "cauchy", "soft_l1", "huber")
 """`sfm.final_ba_loss`'s values: none = no final adjustment, else Ceres' robust loss of that name."""
 
 
+OUTLIER_SCALES = 3.0
+"""The final adjustment's outlier threshold, in loss scales: after its first pass, observations
+more than this many Cauchy scales off (robust weight 1 / (1 + 3^2) = 10 %: the loss already all
+but ignores them) are dropped and the model adjusted again (`final_bundle_adjustment`)."""
+
+
 @dataclass(frozen=True)
 class FinalBaConfig:
     """A last global bundle adjustment of the finished model under a robust loss
@@ -243,9 +249,35 @@ class FinalBaConfig:
 
     loss: str = "cauchy"
     scale_px: float = 0.0  # 0 = auto: `AUTO_SCALE_FACTOR` x the median of the points' mean reprojection errors
-    max_iterations: int = 100
+    max_iterations: int = 100  # over both passes when `outlier_scales` > 0
     max_reproj_error_px: float = 4.0
     min_tri_angle_deg: float = 1.5
+    outlier_scales: float = OUTLIER_SCALES  # 0 = one pass, the mapper's filter only
+
+
+def _auto_scale(rec: pycolmap.Reconstruction) -> float:
+    """`AUTO_SCALE_FACTOR` x the median of the points' mean reprojection errors (px, >= 1e-3)."""
+    return max(AUTO_SCALE_FACTOR * float(np.median([p.error for p in rec.points3D.values()])), 1e-3)
+
+
+def _adjust(rec: pycolmap.Reconstruction, loss: str, scale_px: float, iterations: int, num_threads: int) -> None:
+    """One global bundle adjustment of `rec` in place (every pose, point, focal length and
+    distortion; principal points fixed) under `loss` of scale `scale_px`."""
+    o = pycolmap.BundleAdjustmentOptions()
+    o.refine_focal_length, o.refine_principal_point, o.refine_extra_params = True, False, True
+    o.ceres.loss_function_type = {"cauchy": pycolmap.LossFunctionType.CAUCHY,
+                                  "soft_l1": pycolmap.LossFunctionType.SOFT_L1,
+                                  "huber": pycolmap.LossFunctionType.HUBER}[loss]
+    o.ceres.loss_function_scale = scale_px
+    o.ceres.solver_options.max_num_iterations = int(iterations)
+    o.ceres.solver_options.num_threads = int(num_threads)
+    pycolmap.bundle_adjustment(rec, o)
+
+
+def _filter(rec: pycolmap.Reconstruction, max_reproj_error_px: float, min_tri_angle_deg: float) -> int:
+    """Drop the observations over `max_reproj_error_px` and the points under `min_tri_angle_deg`
+    (COLMAP's mapper filter); returns the number of observations dropped."""
+    return int(pycolmap.ObservationManager(rec).filter_all_points3D(max_reproj_error_px, min_tri_angle_deg))
 
 
 def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = FinalBaConfig(),
@@ -253,7 +285,10 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     """Adjust every pose, point, focal length and distortion of `rec` once more (in place) under
     the robust loss `cfg.loss` of scale `cfg.scale_px` (full-resolution px; 0 = automatic, see
     `AUTO_SCALE_FACTOR`), then drop the observations the mapper's own filter would drop (over
-    `max_reproj_error_px`, points under `min_tri_angle_deg`). Returns a summary for the report.
+    `max_reproj_error_px`, points under `min_tri_angle_deg`). With `cfg.outlier_scales` > 0 the
+    iterations are split over two passes: after the first, the observations more than
+    `outlier_scales` loss scales off (the scale re-measured on the adjusted model) are dropped
+    and the second pass adjusts what is left. Returns a summary for the report.
 
     Why: COLMAP's incremental mapper ends with a squared-loss global adjustment, so the few
     observations still 1-4 px off (inside its 4 px filter: chance matches on repeated texture,
@@ -265,29 +300,34 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     fountain_P11's from 0.2405° to 0.235°; stock COLMAP's models gain as well (castle 0.442° ->
     0.439°), and the stock comparison maps through this same stage. The scale is the model's
     own rather than a fixed 0.5 px: stock `high`'s 52° model of the difficulty curve (median
-    point error 0.81 px) went from 0.146° to 0.298° under 0.5 px and to 0.098° under its own."""
+    point error 0.81 px) went from 0.146° to 0.298° under 0.5 px and to 0.098° under its own.
+    The second pass (docs/decisions.md, "Outlier pass of the final adjustment"): the mapper's
+    fixed 4 px filter keeps observations 5-10x the model's noise off, which the loss down-weights
+    but which stay in the model and its reprojection error; COLMAP's own global refinement
+    alternates adjustment and filtering the same way. Same iteration budget as one pass."""
     if cfg.loss == "none" or rec.num_reg_images() < 2 or rec.num_points3D() == 0:
         return {"loss": cfg.loss, "applied": False}
     t0 = time.perf_counter()
     before = float(rec.compute_mean_reprojection_error())
-    scale = float(cfg.scale_px)
-    if scale <= 0:
-        scale = AUTO_SCALE_FACTOR * float(np.median([p.error for p in rec.points3D.values()]))
-        scale = max(scale, 1e-3)
-    o = pycolmap.BundleAdjustmentOptions()
-    o.refine_focal_length, o.refine_principal_point, o.refine_extra_params = True, False, True
-    o.ceres.loss_function_type = {"cauchy": pycolmap.LossFunctionType.CAUCHY,
-                                  "soft_l1": pycolmap.LossFunctionType.SOFT_L1,
-                                  "huber": pycolmap.LossFunctionType.HUBER}[cfg.loss]
-    o.ceres.loss_function_scale = scale
-    o.ceres.solver_options.max_num_iterations = int(cfg.max_iterations)
-    o.ceres.solver_options.num_threads = int(num_threads)
-    pycolmap.bundle_adjustment(rec, o)
-    dropped = int(pycolmap.ObservationManager(rec).filter_all_points3D(cfg.max_reproj_error_px, cfg.min_tri_angle_deg))
-    return {"loss": cfg.loss, "applied": True, "scale_px": round(scale, 4), "auto_scale": cfg.scale_px <= 0,
-            "mean_reprojection_error_before": round(before, 5),
-            "mean_reprojection_error_after": round(float(rec.compute_mean_reprojection_error()), 5),
-            "observations_dropped": dropped, "seconds": round(time.perf_counter() - t0, 3)}
+    scale = float(cfg.scale_px) if cfg.scale_px > 0 else _auto_scale(rec)
+    two_pass = cfg.outlier_scales > 0
+    first = max(1, int(cfg.max_iterations) // 2) if two_pass else int(cfg.max_iterations)
+    _adjust(rec, cfg.loss, scale, first, num_threads)
+    dropped = _filter(rec, cfg.max_reproj_error_px, cfg.min_tri_angle_deg)
+    out = {"loss": cfg.loss, "applied": True, "scale_px": round(scale, 4), "auto_scale": cfg.scale_px <= 0,
+           "mean_reprojection_error_before": round(before, 5)}
+    if two_pass and rec.num_points3D() > 0:
+        scale2 = float(cfg.scale_px) if cfg.scale_px > 0 else _auto_scale(rec)
+        threshold = min(float(cfg.max_reproj_error_px), cfg.outlier_scales * scale2)
+        outliers = _filter(rec, threshold, cfg.min_tri_angle_deg)
+        if rec.num_points3D() > 0:
+            _adjust(rec, cfg.loss, scale2, max(1, int(cfg.max_iterations) - first), num_threads)
+            outliers += _filter(rec, threshold, cfg.min_tri_angle_deg)
+        out.update(outlier_threshold_px=round(threshold, 4), second_scale_px=round(scale2, 4),
+                   outliers_dropped=outliers)
+    out.update(mean_reprojection_error_after=round(float(rec.compute_mean_reprojection_error()), 5),
+               observations_dropped=dropped, seconds=round(time.perf_counter() - t0, 3))
+    return out
 
 
 def write_model_atomic(rec: pycolmap.Reconstruction, model_dir: str | Path) -> None:

@@ -9,7 +9,8 @@ Key: the verify stage's key, every mapper option (pycolmap's `todict()`, which h
 seed) and the final adjustment's. Reused when unchanged and `sparse/0` can be read; the number
 of models, their sizes, the registration order and the final adjustment's summary come back from
 the state record (a reused model has no growth events). Options: `sfm.num_threads`,
-`sfm.scale_thresholds`, `sfm.final_ba_loss`, `sfm.final_ba_scale_px`, `seed`; the mapper's tuned
+`sfm.scale_thresholds`, `sfm.final_ba_loss`, `sfm.final_ba_scale_px`,
+`sfm.final_ba_outlier_scales`, `seed`; the mapper's tuned
 options are in `recon.core.sfm`.
 """
 
@@ -40,12 +41,14 @@ def mapping_options(cfg: RunConfig, px_scale: float) -> pycolmap.IncrementalPipe
 
 
 def final_ba_config(cfg: RunConfig, px_scale: float) -> sfm.FinalBaConfig:
-    """The final robust adjustment of this run: `sfm.final_ba_loss` / `final_ba_scale_px`, then
-    the incremental mapper's own filter (its `filter_max_reproj_error`, `filter_min_tri_angle`)."""
+    """The final robust adjustment of this run: `sfm.final_ba_loss` / `final_ba_scale_px` /
+    `final_ba_outlier_scales`, then the incremental mapper's own filter (its
+    `filter_max_reproj_error`, `filter_min_tri_angle`)."""
     m = mapping_options(cfg, px_scale).mapper
     return sfm.FinalBaConfig(loss=cfg.sfm.final_ba_loss, scale_px=float(cfg.sfm.final_ba_scale_px),
                              max_reproj_error_px=float(m.filter_max_reproj_error),
-                             min_tri_angle_deg=float(m.filter_min_tri_angle))
+                             min_tri_angle_deg=float(m.filter_min_tri_angle),
+                             outlier_scales=float(cfg.sfm.final_ba_outlier_scales))
 
 
 def read_model(model_dir: Path) -> pycolmap.Reconstruction | None:
