@@ -336,6 +336,14 @@ class SfmConfig:
     (`recon.core.sfm.OUTLIER_SCALES`; lower reprojection and equal or lower rotation errors for
     ours and for stock on the real scenes, docs/decisions.md)."""
 
+    final_ba_refine_principal_point: bool = False
+    """Let the final adjustment refine every camera's principal point (COLMAP fixes it at the
+    image centre). Opt-in: where a capture constrains it (castle_P30, fountain_P11: a true
+    principal point 15-20 px off-centre) the median rotation error falls from 0.43° / 0.23° to
+    0.07° / 0.06°, but where it does not (cameras in a row at one height, one camera per photo)
+    it drifts by 40-200 px and the poses with it (docs/decisions.md, "The principal point in the
+    final adjustment")."""
+
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS
         from recon.core.sfm import FINAL_BA_LOSSES

@@ -247,6 +247,28 @@ def test_outlier_pass_drops_the_observations_the_loss_discounts_and_keeps_the_re
     assert pose_errors(two, gt)[0] <= 1.1 * pose_errors(one, gt)[0]
 
 
+def test_refining_the_principal_point_recovers_an_off_centre_one(tmp_path):
+    """The synthetic camera's principal point moved to the image centre, as COLMAP assumes for a
+    photo: the default final adjustment keeps it there, the opt-in refinement finds the true one
+    back and the poses with it."""
+    db = tmp_path / "database.db"
+    pycolmap.set_random_seed(0)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 8, 400
+    o.camera_params = [1280.0, 542.0, 364.0, 0.0]  # 30 / 20 px off the 1024 x 768 image's centre
+    with pycolmap.Database.open(str(db)) as d:
+        gt = pycolmap.synthesize_dataset(o, d)
+    rec = _map(db).reconstruction
+    for cam in rec.cameras.values():
+        cam.params = [cam.params[0], 512.0, 384.0, cam.params[3]]
+    fixed, free = _copy_model(rec, tmp_path / "fixed"), _copy_model(rec, tmp_path / "free")
+    final_bundle_adjustment(fixed, FinalBaConfig())
+    final_bundle_adjustment(free, FinalBaConfig(refine_principal_point=True))
+    assert np.allclose(next(iter(fixed.cameras.values())).params[1:3], [512.0, 384.0])
+    assert np.allclose(next(iter(free.cameras.values())).params[1:3], [542.0, 364.0], atol=2.0)
+    assert pose_errors(free, gt)[0] < 0.5 * pose_errors(fixed, gt)[0]
+
+
 def test_final_adjustment_off_leaves_the_model_as_the_mapper_made_it(tmp_path):
     db = tmp_path / "database.db"
     synthesize(db, keypoint_noise_px=0.5)
