@@ -336,17 +336,18 @@ class SfmConfig:
     (`recon.core.sfm.OUTLIER_SCALES`; lower reprojection and equal or lower rotation errors for
     ours and for stock on the real scenes, docs/decisions.md)."""
 
-    final_ba_refine_principal_point: bool = False
-    """Let the final adjustment refine every camera's principal point (COLMAP fixes it at the
-    image centre). Opt-in: where a capture constrains it (castle_P30, fountain_P11: a true
-    principal point 15-20 px off-centre) the median rotation error falls from 0.43° / 0.23° to
-    0.07° / 0.06°, but where it does not (cameras in a row at one height, one camera per photo)
-    it drifts by 40-200 px and the poses with it (docs/decisions.md, "The principal point in the
-    final adjustment")."""
+    final_ba_principal_point: str = field(default="fixed", metadata={"choices": "recon.core.sfm:PRINCIPAL_POINT_MODES"})
+    """The principal point in the final adjustment. fixed (default): COLMAP's image centre.
+    refine: freed; where a capture constrains it (castle_P30, fountain_P11: a true principal
+    point 15-20 px off-centre) the median rotation error falls from 0.43° / 0.23° to 0.07° /
+    0.06°, but where it does not (cameras in a row at one height) it drifts by 12-200 px and the
+    poses with it. auto: freed only when two probe adjustments from different starts agree
+    (three adjustments instead of one). docs/decisions.md, "The principal point in the final
+    adjustment"."""
 
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS
-        from recon.core.sfm import FINAL_BA_LOSSES
+        from recon.core.sfm import FINAL_BA_LOSSES, PRINCIPAL_POINT_MODES
 
         if self.mapper not in MAPPERS:
             raise UserError(f"--mapper {self.mapper!r}: choose one of {', '.join(MAPPERS)}")
@@ -361,6 +362,9 @@ class SfmConfig:
                 or not self.final_ba_outlier_scales >= 0:
             raise UserError(f"sfm.final_ba_outlier_scales {self.final_ba_outlier_scales!r}: a number of loss scales >= 0 "
                             "(0 = no outlier pass)")
+        if self.final_ba_principal_point not in PRINCIPAL_POINT_MODES:
+            raise UserError(f"sfm.final_ba_principal_point {self.final_ba_principal_point!r}: choose one of "
+                            f"{', '.join(PRINCIPAL_POINT_MODES)}")
 
 
 @dataclass

@@ -262,11 +262,16 @@ def test_refining_the_principal_point_recovers_an_off_centre_one(tmp_path):
     for cam in rec.cameras.values():
         cam.params = [cam.params[0], 512.0, 384.0, cam.params[3]]
     fixed, free = _copy_model(rec, tmp_path / "fixed"), _copy_model(rec, tmp_path / "free")
-    final_bundle_adjustment(fixed, FinalBaConfig())
-    final_bundle_adjustment(free, FinalBaConfig(refine_principal_point=True))
+    auto = _copy_model(rec, tmp_path / "auto")
+    assert final_bundle_adjustment(fixed, FinalBaConfig())["principal_point_refined"] is False
+    assert final_bundle_adjustment(free, FinalBaConfig(principal_point="refine"))["principal_point_refined"] is True
     assert np.allclose(next(iter(fixed.cameras.values())).params[1:3], [512.0, 384.0])
     assert np.allclose(next(iter(free.cameras.values())).params[1:3], [542.0, 364.0], atol=2.0)
     assert pose_errors(free, gt)[0] < 0.5 * pose_errors(fixed, gt)[0]
+    # auto: the two probes from 10 px up-right and down-left end at one point, so it is freed
+    summary = final_bundle_adjustment(auto, FinalBaConfig(principal_point="auto"))
+    assert summary["principal_point_refined"] and summary["principal_point_probe_gap"] < 0.001
+    assert np.allclose(next(iter(auto.cameras.values())).params[1:3], [542.0, 364.0], atol=2.0)
 
 
 def test_final_adjustment_off_leaves_the_model_as_the_mapper_made_it(tmp_path):

@@ -236,6 +236,21 @@ FINAL_BA_LOSSES = ("none", "cauchy", "soft_l1", "huber")
 """`sfm.final_ba_loss`'s values: none = no final adjustment, else Ceres' robust loss of that name."""
 
 
+PRINCIPAL_POINT_MODES = ("fixed", "refine", "auto")
+"""`FinalBaConfig.principal_point`: fixed = COLMAP's image centre (default); refine = freed in the
+final adjustment; auto = freed only where two probes agree (`final_bundle_adjustment`)."""
+
+PROBE_SHIFT = 0.01
+"""Auto principal point: the two probes start this fraction of the image's larger side off the
+current principal point, one up-right, one down-left."""
+
+PROBE_AGREEMENT = 0.001
+"""Auto principal point: the probes' principal points must end within this fraction of the
+image's larger side (every camera) for the point to count as constrained by the views. Measured
+(docs/decisions.md): 0-0.00007 on castle_P30, fountain_P11, sceaux_castle; 0.0022 on sacre_coeur's
+ten one-photo cameras (left fixed: no ground truth to say the freed ones are right); 0.006-0.073
+on the difficulty curve's degenerate models."""
+
 OUTLIER_SCALES = 3.0
 """The final adjustment's outlier threshold, in loss scales: after its first pass, observations
 more than this many Cauchy scales off (robust weight 1 / (1 + 3^2) = 10 %: the loss already all
@@ -253,7 +268,7 @@ class FinalBaConfig:
     max_reproj_error_px: float = 4.0
     min_tri_angle_deg: float = 1.5
     outlier_scales: float = OUTLIER_SCALES  # 0 = one pass, the mapper's filter only
-    refine_principal_point: bool = False  # opt-in: degenerate on many captures (docs/decisions.md)
+    principal_point: str = "fixed"  # fixed / refine / auto (`PRINCIPAL_POINT_MODES`)
 
 
 def _auto_scale(rec: pycolmap.Reconstruction) -> float:
@@ -308,11 +323,46 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     fixed 4 px filter keeps observations 5-10x the model's noise off, which the loss down-weights
     but which stay in the model and its reprojection error; COLMAP's own global refinement
     alternates adjustment and filtering the same way. Same iteration budget as one pass.
-    `refine_principal_point` (off by default) frees every camera's principal point in both passes:
-    on castle_P30 and fountain_P11, whose true principal point lies 15-20 px off the centre COLMAP
-    assumes, it cuts the rotation error 4-6x, but where the views do not constrain it (a row of
-    cameras at one height, one camera per internet photo) it drifts by 40-200 px and the poses
-    follow (docs/decisions.md, "The principal point in the final adjustment")."""
+    `principal_point` "refine" frees every camera's principal point in both passes: on castle_P30
+    and fountain_P11, whose true principal point lies 15-20 px off the centre COLMAP assumes, it
+    cuts the rotation error 4-6x, but where the views do not constrain it (a row of cameras at one
+    height) it drifts by 12-200 px and the poses follow. "auto" first adjusts two copies with it
+    freed from two starts (`PROBE_SHIFT`) and frees it only when they end at the same point
+    (`PROBE_AGREEMENT`): a flat direction shows as disagreeing starts (three adjustments instead
+    of one; docs/decisions.md, "The principal point in the final adjustment")."""
+    if cfg.principal_point == "auto" and cfg.loss != "none" and rec.num_reg_images() >= 2 and rec.num_points3D() > 0:
+        t0 = time.perf_counter()
+        gap = _principal_point_probe_gap(rec, cfg, num_threads)
+        refine = gap <= PROBE_AGREEMENT
+        out = _final(rec, cfg, num_threads, refine)
+        out.update(principal_point="auto", principal_point_refined=refine, principal_point_probe_gap=round(gap, 6),
+                   seconds=round(time.perf_counter() - t0, 3))
+        return out
+    out = _final(rec, cfg, num_threads, cfg.principal_point == "refine")
+    if out["applied"]:
+        out.update(principal_point=cfg.principal_point, principal_point_refined=cfg.principal_point == "refine")
+    return out
+
+
+def _principal_point_probe_gap(rec: pycolmap.Reconstruction, cfg: FinalBaConfig, num_threads: int) -> float:
+    """The largest distance, over cameras and as a fraction of the image's larger side, between
+    the principal points two copies of `rec` reach when adjusted with it freed from starts
+    `PROBE_SHIFT` up-right and down-left of the current one. `rec` is not changed."""
+    ends = []
+    for sign in (1.0, -1.0):
+        probe = pycolmap.Reconstruction(rec)
+        for cam in probe.cameras.values():
+            params = np.array(cam.params, dtype=float)
+            params[list(cam.principal_point_idxs())] += sign * PROBE_SHIFT * max(cam.width, cam.height)
+            cam.params = params
+        _final(probe, cfg, num_threads, True)
+        ends.append({i: (np.array([c.principal_point_x, c.principal_point_y]), max(c.width, c.height))
+                     for i, c in probe.cameras.items()})
+    return max((float(np.linalg.norm(pp - ends[1][i][0])) / size for i, (pp, size) in ends[0].items()), default=0.0)
+
+
+def _final(rec: pycolmap.Reconstruction, cfg: FinalBaConfig, num_threads: int, refine_pp: bool) -> dict:
+    """`final_bundle_adjustment` with the principal point freed or not (`refine_pp`)."""
     if cfg.loss == "none" or rec.num_reg_images() < 2 or rec.num_points3D() == 0:
         return {"loss": cfg.loss, "applied": False}
     t0 = time.perf_counter()
@@ -320,7 +370,7 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     scale = float(cfg.scale_px) if cfg.scale_px > 0 else _auto_scale(rec)
     two_pass = cfg.outlier_scales > 0
     first = max(1, int(cfg.max_iterations) // 2) if two_pass else int(cfg.max_iterations)
-    _adjust(rec, cfg.loss, scale, first, num_threads, cfg.refine_principal_point)
+    _adjust(rec, cfg.loss, scale, first, num_threads, refine_pp)
     dropped = _filter(rec, cfg.max_reproj_error_px, cfg.min_tri_angle_deg)
     out = {"loss": cfg.loss, "applied": True, "scale_px": round(scale, 4), "auto_scale": cfg.scale_px <= 0,
            "mean_reprojection_error_before": round(before, 5)}
@@ -330,7 +380,7 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
         outliers = _filter(rec, threshold, cfg.min_tri_angle_deg)
         if rec.num_points3D() > 0:
             _adjust(rec, cfg.loss, scale2, max(1, int(cfg.max_iterations) - first), num_threads,
-                    cfg.refine_principal_point)
+                    refine_pp)
             outliers += _filter(rec, threshold, cfg.min_tri_angle_deg)
         out.update(outlier_threshold_px=round(threshold, 4), second_scale_px=round(scale2, 4),
                    outliers_dropped=outliers)

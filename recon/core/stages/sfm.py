@@ -10,7 +10,7 @@ seed) and the final adjustment's. Reused when unchanged and `sparse/0` can be re
 of models, their sizes, the registration order and the final adjustment's summary come back from
 the state record (a reused model has no growth events). Options: `sfm.num_threads`,
 `sfm.scale_thresholds`, `sfm.final_ba_loss`, `sfm.final_ba_scale_px`,
-`sfm.final_ba_outlier_scales`, `sfm.final_ba_refine_principal_point`, `seed`; the mapper's tuned
+`sfm.final_ba_outlier_scales`, `sfm.final_ba_principal_point`, `seed`; the mapper's tuned
 options are in `recon.core.sfm`.
 """
 
@@ -49,7 +49,7 @@ def final_ba_config(cfg: RunConfig, px_scale: float) -> sfm.FinalBaConfig:
                              max_reproj_error_px=float(m.filter_max_reproj_error),
                              min_tri_angle_deg=float(m.filter_min_tri_angle),
                              outlier_scales=float(cfg.sfm.final_ba_outlier_scales),
-                             refine_principal_point=bool(cfg.sfm.final_ba_refine_principal_point))
+                             principal_point=cfg.sfm.final_ba_principal_point)
 
 
 def read_model(model_dir: Path) -> pycolmap.Reconstruction | None:
