@@ -271,9 +271,17 @@ class FinalBaConfig:
     principal_point: str = "fixed"  # fixed / refine / auto (`PRINCIPAL_POINT_MODES`)
 
 
-def _auto_scale(rec: pycolmap.Reconstruction) -> float:
-    """`AUTO_SCALE_FACTOR` x the median of the points' mean reprojection errors (px, >= 1e-3)."""
+def _loss_scale(rec: pycolmap.Reconstruction, cfg: FinalBaConfig) -> float:
+    """`cfg.scale_px`, or when 0 `AUTO_SCALE_FACTOR` x the median of the points' mean
+    reprojection errors in `rec` as it is now (px, >= 1e-3)."""
+    if cfg.scale_px > 0:
+        return float(cfg.scale_px)
     return max(AUTO_SCALE_FACTOR * float(np.median([p.error for p in rec.points3D.values()])), 1e-3)
+
+
+def _adjustable(rec: pycolmap.Reconstruction, cfg: FinalBaConfig) -> bool:
+    """Whether the final adjustment applies: a loss, two registered images, a point."""
+    return cfg.loss != "none" and rec.num_reg_images() >= 2 and rec.num_points3D() > 0
 
 
 def _adjust(rec: pycolmap.Reconstruction, loss: str, scale_px: float, iterations: int, num_threads: int,
@@ -330,7 +338,7 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     freed from two starts (`PROBE_SHIFT`) and frees it only when they end at the same point
     (`PROBE_AGREEMENT`): a flat direction shows as disagreeing starts (three adjustments instead
     of one; docs/decisions.md, "The principal point in the final adjustment")."""
-    if cfg.principal_point == "auto" and cfg.loss != "none" and rec.num_reg_images() >= 2 and rec.num_points3D() > 0:
+    if cfg.principal_point == "auto" and _adjustable(rec, cfg):
         t0 = time.perf_counter()
         gap = _principal_point_probe_gap(rec, cfg, num_threads)
         refine = gap <= PROBE_AGREEMENT
@@ -356,18 +364,18 @@ def _principal_point_probe_gap(rec: pycolmap.Reconstruction, cfg: FinalBaConfig,
             params[list(cam.principal_point_idxs())] += sign * PROBE_SHIFT * max(cam.width, cam.height)
             cam.params = params
         _final(probe, cfg, num_threads, True)
-        ends.append({i: (np.array([c.principal_point_x, c.principal_point_y]), max(c.width, c.height))
-                     for i, c in probe.cameras.items()})
-    return max((float(np.linalg.norm(pp - ends[1][i][0])) / size for i, (pp, size) in ends[0].items()), default=0.0)
+        ends.append({i: np.array([c.principal_point_x, c.principal_point_y]) for i, c in probe.cameras.items()})
+    return max((float(np.linalg.norm(ends[0][i] - ends[1][i])) / max(c.width, c.height) for i, c in rec.cameras.items()),
+               default=0.0)
 
 
 def _final(rec: pycolmap.Reconstruction, cfg: FinalBaConfig, num_threads: int, refine_pp: bool) -> dict:
     """`final_bundle_adjustment` with the principal point freed or not (`refine_pp`)."""
-    if cfg.loss == "none" or rec.num_reg_images() < 2 or rec.num_points3D() == 0:
+    if not _adjustable(rec, cfg):
         return {"loss": cfg.loss, "applied": False}
     t0 = time.perf_counter()
     before = float(rec.compute_mean_reprojection_error())
-    scale = float(cfg.scale_px) if cfg.scale_px > 0 else _auto_scale(rec)
+    scale = _loss_scale(rec, cfg)
     two_pass = cfg.outlier_scales > 0
     first = max(1, int(cfg.max_iterations) // 2) if two_pass else int(cfg.max_iterations)
     _adjust(rec, cfg.loss, scale, first, num_threads, refine_pp)
@@ -375,7 +383,7 @@ def _final(rec: pycolmap.Reconstruction, cfg: FinalBaConfig, num_threads: int, r
     out = {"loss": cfg.loss, "applied": True, "scale_px": round(scale, 4), "auto_scale": cfg.scale_px <= 0,
            "mean_reprojection_error_before": round(before, 5)}
     if two_pass and rec.num_points3D() > 0:
-        scale2 = float(cfg.scale_px) if cfg.scale_px > 0 else _auto_scale(rec)
+        scale2 = _loss_scale(rec, cfg)  # re-measured on the adjusted model
         threshold = min(float(cfg.max_reproj_error_px), cfg.outlier_scales * scale2)
         outliers = _filter(rec, threshold, cfg.min_tri_angle_deg)
         if rec.num_points3D() > 0:
