@@ -16,6 +16,7 @@ import pytest
 from recon.core.sfm import (FinalBaConfig, GrowthStep, final_bundle_adjustment, mapping_options, model_stats,
                             options_summary, registered_names, run_incremental, write_model_atomic,
                             write_points_ply)
+from recon.eval.evaluate import evaluate_model, poses_from_estimate
 
 
 def synthesize(db_path: Path, num_frames: int = 6, num_points3D: int = 200, keypoint_noise_px: float = 0.0
@@ -272,6 +273,60 @@ def test_refining_the_principal_point_recovers_an_off_centre_one(tmp_path):
     summary = final_bundle_adjustment(auto, FinalBaConfig(principal_point="auto"))
     assert summary["principal_point_refined"] and summary["principal_point_probe_gap"] < 0.001
     assert np.allclose(next(iter(auto.cameras.values())).params[1:3], [542.0, 364.0], atol=2.0)
+
+
+def _arc_capture(db_path: Path, num_frames: int = 6, yaw_deg: float = 30.0, noise_px: float = 0.3
+                 ) -> pycolmap.Reconstruction:
+    """The capture that leaves the principal point loose: `num_frames` cameras on one arc at one
+    height (10 units from the origin, yaw -`yaw_deg` to +`yaw_deg`, no pitch), each looking at the
+    origin, over 300 points of a shallow facade (4 x 3 x 1 units); one 1024 x 768 camera, focal
+    1500 px, principal point at the centre. Returns the model with the true poses and points and
+    observations projected with Gaussian noise of `noise_px` (px)."""
+    pycolmap.set_random_seed(0)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, num_frames, 300
+    o.camera_params = [1500.0, 512.0, 384.0, 0.0]
+    with pycolmap.Database.open(str(db_path)) as d:
+        rec = pycolmap.synthesize_dataset(o, d)
+    rng = np.random.default_rng(0)
+    for pid in sorted(rec.points3D.keys()):
+        rec.points3D[pid].xyz = rng.uniform([-2.0, -1.5, -0.5], [2.0, 1.5, 0.5])
+    for yaw, fid in zip(np.deg2rad(np.linspace(-yaw_deg, yaw_deg, num_frames)), sorted(rec.frames.keys())):
+        c, s = np.cos(yaw), np.sin(yaw)
+        world_from_cam_centre = np.array([10.0 * s, 0.0, -10.0 * c])
+        cam_from_world_R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # optical axis at the origin
+        rec.frames[fid].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world_R),
+                                                          -cam_from_world_R @ world_from_cam_centre)
+    for im in rec.images.values():
+        cam = rec.cameras[im.camera_id]
+        for p2 in im.points2D:
+            if p2.has_point3D():
+                xy = np.asarray(cam.img_from_cam(im.cam_from_world() * rec.points3D[p2.point3D_id].xyz)).ravel()
+                assert 0 <= xy[0] < 1024 and 0 <= xy[1] < 768
+                p2.xy = xy + rng.normal(0.0, noise_px, 2)
+    return rec
+
+
+def test_auto_principal_point_stays_fixed_where_a_row_of_cameras_leaves_it_loose(tmp_path):
+    """Cameras on one arc at one height: a shift of the principal point is nearly a common pitch
+    of every camera, so refining it drifts tens of px and tilts the poses; `auto`'s two probes end
+    apart and it keeps the point (the difficulty curve's case, docs/decisions.md)."""
+    truth = _arc_capture(tmp_path / "database.db")
+    gt = poses_from_estimate(truth)
+
+    def rotation_error(m: pycolmap.Reconstruction) -> float:  # median relative rotation error, degrees
+        return float(evaluate_model(m, gt, with_pairs=False)["rel_rot_err_deg_median"])
+
+    free, auto = _copy_model(truth, tmp_path / "free"), _copy_model(truth, tmp_path / "auto")
+    fixed = _copy_model(truth, tmp_path / "fixed")
+    final_bundle_adjustment(fixed, FinalBaConfig())
+    final_bundle_adjustment(free, FinalBaConfig(principal_point="refine"))
+    assert abs(next(iter(free.cameras.values())).principal_point_y - 384.0) > 10.0
+    assert rotation_error(free) > 2 * rotation_error(fixed)
+    summary = final_bundle_adjustment(auto, FinalBaConfig(principal_point="auto"))
+    assert summary["principal_point_refined"] is False and summary["principal_point_probe_gap"] > 0.001
+    assert np.allclose(next(iter(auto.cameras.values())).params[1:3], [512.0, 384.0])
+    assert rotation_error(auto) == pytest.approx(rotation_error(fixed), rel=1e-6)
 
 
 def test_final_adjustment_off_leaves_the_model_as_the_mapper_made_it(tmp_path):
