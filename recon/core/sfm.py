@@ -58,7 +58,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -251,6 +251,15 @@ image's larger side (every camera) for the point to count as constrained by the 
 ten one-photo cameras (left fixed: no ground truth to say the freed ones are right); 0.006-0.073
 on the difficulty curve's degenerate models."""
 
+PROBE_ITERATIONS = 30
+"""Auto principal point: each probe is one adjustment pass of this many iterations (no outlier
+pass), a third of the final adjustment's cost. Measured on the mapper's models (docs/decisions.md,
+"The principal point in the final adjustment"): the same decision as full two-pass probes on all
+twelve (castle_P30, fountain_P11, sceaux_castle freed at gaps 0-0.00007; sacre_coeur and the
+difficulty curve's seven models kept at 0.0055-0.063), castle_P30's probes 15.8 s instead of
+48.5 s. Probes on a quarter of the points cost 14x less but freed a degenerate difficulty-curve
+model (gap 0.00042), so every point is kept."""
+
 OUTLIER_SCALES = 3.0
 """The final adjustment's outlier threshold, in loss scales: after its first pass, observations
 more than this many Cauchy scales off (robust weight 1 / (1 + 3^2) = 10 %: the loss already all
@@ -336,8 +345,9 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     cuts the rotation error 4-6x, but where the views do not constrain it (a row of cameras at one
     height) it drifts by 12-200 px and the poses follow. "auto" first adjusts two copies with it
     freed from two starts (`PROBE_SHIFT`) and frees it only when they end at the same point
-    (`PROBE_AGREEMENT`): a flat direction shows as disagreeing starts (three adjustments instead
-    of one; docs/decisions.md, "The principal point in the final adjustment")."""
+    (`PROBE_AGREEMENT`): a flat direction shows as disagreeing starts (two short probes,
+    `PROBE_ITERATIONS`, besides the adjustment itself; docs/decisions.md, "The principal point in
+    the final adjustment")."""
     if cfg.principal_point == "auto" and _adjustable(rec, cfg):
         t0 = time.perf_counter()
         gap = _principal_point_probe_gap(rec, cfg, num_threads)
@@ -355,15 +365,17 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
 def _principal_point_probe_gap(rec: pycolmap.Reconstruction, cfg: FinalBaConfig, num_threads: int) -> float:
     """The largest distance, over cameras and as a fraction of the image's larger side, between
     the principal points two copies of `rec` reach when adjusted with it freed from starts
-    `PROBE_SHIFT` up-right and down-left of the current one. `rec` is not changed."""
+    `PROBE_SHIFT` up-right and down-left of the current one, each one pass of `PROBE_ITERATIONS`.
+    `rec` is not changed."""
     ends = []
+    probe_cfg = replace(cfg, max_iterations=PROBE_ITERATIONS, outlier_scales=0)
     for sign in (1.0, -1.0):
         probe = pycolmap.Reconstruction(rec)
         for cam in probe.cameras.values():
             params = np.array(cam.params, dtype=float)
             params[list(cam.principal_point_idxs())] += sign * PROBE_SHIFT * max(cam.width, cam.height)
             cam.params = params
-        _final(probe, cfg, num_threads, True)
+        _final(probe, probe_cfg, num_threads, True)
         ends.append({i: np.array([c.principal_point_x, c.principal_point_y]) for i, c in probe.cameras.items()})
     return max((float(np.linalg.norm(ends[0][i] - ends[1][i])) / max(c.width, c.height) for i, c in rec.cameras.items()),
                default=0.0)
