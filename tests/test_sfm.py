@@ -293,10 +293,10 @@ def _arc_capture(db_path: Path, num_frames: int = 6, yaw_deg: float = 30.0, nois
         rec.points3D[pid].xyz = rng.uniform([-2.0, -1.5, -0.5], [2.0, 1.5, 0.5])
     for yaw, fid in zip(np.deg2rad(np.linspace(-yaw_deg, yaw_deg, num_frames)), sorted(rec.frames.keys())):
         c, s = np.cos(yaw), np.sin(yaw)
-        world_from_cam_centre = np.array([10.0 * s, 0.0, -10.0 * c])
+        centre_in_world = np.array([10.0 * s, 0.0, -10.0 * c])
         cam_from_world_R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # optical axis at the origin
         rec.frames[fid].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world_R),
-                                                          -cam_from_world_R @ world_from_cam_centre)
+                                                          -cam_from_world_R @ centre_in_world)
     for im in rec.images.values():
         cam = rec.cameras[im.camera_id]
         for p2 in im.points2D:

@@ -247,9 +247,9 @@ current principal point, one up-right, one down-left."""
 PROBE_AGREEMENT = 0.001
 """Auto principal point: the probes' principal points must end within this fraction of the
 image's larger side (every camera) for the point to count as constrained by the views. Measured
-(docs/decisions.md): 0-0.00007 on castle_P30, fountain_P11, sceaux_castle; 0.0022 on sacre_coeur's
-ten one-photo cameras (left fixed: no ground truth to say the freed ones are right); 0.006-0.073
-on the difficulty curve's degenerate models."""
+with the `PROBE_ITERATIONS` probes (docs/decisions.md): 0-0.00007 on castle_P30, fountain_P11,
+sceaux_castle; 0.0088 on sacre_coeur's ten one-photo cameras (left fixed: no ground truth to say
+the freed ones are right); 0.0055-0.063 on the difficulty curve's degenerate models."""
 
 PROBE_ITERATIONS = 30
 """Auto principal point: each probe is one adjustment pass of this many iterations (no outlier
