@@ -172,6 +172,17 @@ def test_bad_config_file_is_one_line_exit_2(tmp_path, capsys, captured, content,
     assert rc == 2 and len(lines) == 1
 
 
+def test_run_config_defaults_give_the_final_adjustments_defaults():
+    """`sfm.final_ba_*` restate `recon.core.sfm.FinalBaConfig`'s defaults (the config layer does not
+    import pycolmap): the stage must build the same adjustment from a default run."""
+    from recon.core.sfm import FinalBaConfig
+    from recon.core.stages.sfm import final_ba_config
+
+    built, core = final_ba_config(RunConfig(), 1.0), FinalBaConfig()
+    for name in ("loss", "scale_px", "max_iterations", "outlier_scales", "principal_point"):
+        assert getattr(built, name) == getattr(core, name), name
+
+
 def test_report_config_round_trips(tmp_path):
     cfg = build_run_config("fast", None, {"pairs.spec": "sequential:2"}, ["matcher.fine_top_k=3", "seed=9"])
     assert RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg

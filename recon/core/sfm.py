@@ -255,10 +255,9 @@ PROBE_ITERATIONS = 30
 """Auto principal point: each probe is one adjustment pass of this many iterations (no outlier
 pass), a third of the final adjustment's cost. Measured on the mapper's models (docs/decisions.md,
 "The principal point in the final adjustment"): the same decision as full two-pass probes on all
-twelve (castle_P30, fountain_P11, sceaux_castle freed at gaps 0-0.00007; sacre_coeur and the
-difficulty curve's seven models kept at 0.0055-0.063), castle_P30's probes 15.8 s instead of
-48.5 s. Probes on a quarter of the points cost 14x less but freed a degenerate difficulty-curve
-model (gap 0.00042), so every point is kept."""
+twelve (gaps under `PROBE_AGREEMENT`), castle_P30's probes 15.8 s instead of 48.5 s. Probes on a
+quarter of the points cost 14x less but freed a degenerate difficulty-curve model (gap 0.00042),
+so every point is kept."""
 
 OUTLIER_SCALES = 3.0
 """The final adjustment's outlier threshold, in loss scales: after its first pass, observations
