@@ -341,9 +341,9 @@ class SfmConfig:
     refine: freed; where a capture constrains it (castle_P30, fountain_P11: a true principal
     point 15-20 px off-centre) the median rotation error falls from 0.43° / 0.23° to 0.07° /
     0.06°, but where it does not (cameras in a row at one height) it drifts by 12-200 px and the
-    poses with it. auto: freed only when two short probe adjustments from different starts
-    agree (castle_P30: 45 s instead of 20 s). docs/decisions.md, "The principal point in the
-    final adjustment"."""
+    poses with it. auto: freed only when the adjustment's covariance says the views determine it
+    to 0.2 % of the image (`recon.core.sfm.PP_SIGMA_MAX`; one covariance estimate, about a second).
+    docs/decisions.md, "The principal point in the final adjustment"."""
 
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS

@@ -139,7 +139,7 @@ def test_schema_version_versions_and_the_documented_schema():
     from recon.core.report import SCHEMA_VERSION
 
     data = _report().to_dict()
-    assert data["schema_version"] == SCHEMA_VERSION == 2
+    assert data["schema_version"] == SCHEMA_VERSION == 3
     assert set(data["versions"]) == {"recon", "python", "pycolmap", "opencv", "numpy"}
     import pycolmap
 
@@ -171,13 +171,13 @@ def test_version_1_reports_are_read_as_the_current_schema(tmp_path):
 
 
 def test_a_real_run_names_its_initial_pair_and_writes_absolute_paths(corner_sift_run):
-    """report.json of a real run (the rendered corner, SIFT): schema 2, the initial pair of the
+    """report.json of a real run (the rendered corner, SIFT): the current schema, the initial pair of the
     model named on its first growth step (two registered images, the second is `image`)."""
     from pathlib import Path
 
     out, rep, _ = corner_sift_run
     data = json.loads((out / "report.json").read_text(encoding="utf-8"))
-    assert data["schema_version"] == 2 and data["versions"]["recon"]
+    assert data["schema_version"] == 3 and data["versions"]["recon"]
     assert Path(data["out"]).is_absolute() and Path(data["scene"]).is_absolute()
     assert Path(data["out"]) == out.resolve()
     first = data["sfm_growth"][0]

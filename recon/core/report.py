@@ -68,9 +68,10 @@ import numpy as np
 
 from recon.core.jsonio import write_json_atomic
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """report.json's schema: 1 = before the field existed; 2 = `schema_version`, `versions`, pair rows'
-`two_view_config` (was `config`), `sfm_growth[].initial_pair`."""
+`two_view_config` (was `config`), `sfm_growth[].initial_pair`; 3 = `final_ba.principal_point_sigma`
+(was `principal_point_probe_gap`, with `sfm.final_ba_principal_point=auto`)."""
 
 
 @dataclass

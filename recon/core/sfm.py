@@ -54,11 +54,12 @@ Why these options (COLMAP's defaults assume many images with small baselines):
 from __future__ import annotations
 
 import errno
+import math
 import os
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -238,29 +239,20 @@ FINAL_BA_LOSSES = ("none", "cauchy", "soft_l1", "huber")
 
 PRINCIPAL_POINT_MODES = ("fixed", "refine", "auto")
 """`FinalBaConfig.principal_point`: fixed = COLMAP's image centre (default); refine = freed in the
-final adjustment; auto = freed only where two probes agree (`final_bundle_adjustment`)."""
+final adjustment; auto = freed only where the views determine it (`PP_SIGMA_MAX`)."""
 
-PROBE_SHIFT = 0.01
-"""Auto principal point: the two probes start this fraction of the image's larger side off the
-current principal point, one up-right, one down-left."""
-
-PROBE_AGREEMENT = 0.0002
-"""Auto principal point: the probes' principal points must end within this fraction of the
-image's larger side (every camera) for the point to count as constrained by the views. Measured
-with the `PROBE_ITERATIONS` probes (docs/decisions.md): 0-0.00007 on castle_P30, fountain_P11,
-sceaux_castle and fox; 0.0088 on sacre_coeur's ten one-photo cameras (left fixed: no ground truth
-to say the freed ones are right); 0.0055-0.063 on the difficulty curve's degenerate models, and
-down to 0.00072 on the rendered facade-groups (800x600, seed 2), where freeing it takes the
-rotation error from 0.014° to 3.0°. 0.0002 sits at the geometric middle of the constrained
-models' largest gap and the degenerate ones' smallest, 3.5x from either (0.001 freed that render)."""
-
-PROBE_ITERATIONS = 30
-"""Auto principal point: each probe is one adjustment pass of this many iterations (no outlier
-pass), a third of the final adjustment's cost. Measured on the mapper's models (docs/decisions.md,
-"The principal point in the final adjustment"): the same decision as full two-pass probes on all
-twelve (gaps under `PROBE_AGREEMENT`), castle_P30's probes 15.8 s instead of 48.5 s. Probes on a
-quarter of the points cost 14x less but freed a degenerate difficulty-curve model (gap 0.00042),
-so every point is kept."""
+PP_SIGMA_MAX = 0.002
+"""Auto principal point: it is freed only when every camera's principal point is determined by
+the views to this fraction of the image's larger side (one standard deviation, from the
+adjustment's covariance scaled by the model's RMS reprojection error;
+`_principal_point_sigma`). Measured on finished models (docs/decisions.md, "The principal point
+in the final adjustment"): 0.0036-0.055 % on castle_P30, fountain_P11, fox and sceaux_castle;
+0.11-0.91 % on sacre_coeur's ten one-photo cameras (kept fixed: no ground truth to say freed
+ones are right); 5.2-16 % or no covariance at all (a rank-deficient problem) on every render of
+cameras in a row, among them facade-groups' 800x600 seed-2 render, where freeing the point
+gives 3.0° instead of 0.014°. 0.2 % lies 3.6x above the constrained ones and 4.5x below
+sacre_coeur. It replaced a two-start probe test, which that render passed (the probes measure
+whether the adjustment converges to one point, not how well the views determine it)."""
 
 OUTLIER_SCALES = 3.0
 """The final adjustment's outlier threshold, in loss scales: after its first pass, observations
@@ -345,17 +337,17 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     `principal_point` "refine" frees every camera's principal point in both passes: on castle_P30
     and fountain_P11, whose true principal point lies 15-20 px off the centre COLMAP assumes, it
     cuts the rotation error 4-6x, but where the views do not constrain it (a row of cameras at one
-    height) it drifts by 12-200 px and the poses follow. "auto" first adjusts two copies with it
-    freed from two starts (`PROBE_SHIFT`) and frees it only when they end at the same point
-    (`PROBE_AGREEMENT`): a flat direction shows as disagreeing starts (two short probes,
-    `PROBE_ITERATIONS`, besides the adjustment itself; docs/decisions.md, "The principal point in
-    the final adjustment")."""
+    height) it drifts by 12-200 px and the poses follow. "auto" frees it only when the
+    adjustment's covariance says the views determine it (`PP_SIGMA_MAX`,
+    `_principal_point_sigma`: one covariance estimate, 0.4-3 s on the measured models;
+    docs/decisions.md, "The principal point in the final adjustment")."""
     if cfg.principal_point == "auto" and _adjustable(rec, cfg):
         t0 = time.perf_counter()
-        gap = _principal_point_probe_gap(rec, cfg, num_threads)
-        refine = gap <= PROBE_AGREEMENT
+        sigma = _principal_point_sigma(rec)
+        refine = sigma <= PP_SIGMA_MAX
         out = _final(rec, cfg, num_threads, refine)
-        out.update(principal_point="auto", principal_point_refined=refine, principal_point_probe_gap=round(gap, 6),
+        out.update(principal_point="auto", principal_point_refined=refine,
+                   principal_point_sigma=None if math.isinf(sigma) else round(sigma, 6),
                    seconds=round(time.perf_counter() - t0, 3))
         return out
     out = _final(rec, cfg, num_threads, cfg.principal_point == "refine")
@@ -364,23 +356,37 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
     return out
 
 
-def _principal_point_probe_gap(rec: pycolmap.Reconstruction, cfg: FinalBaConfig, num_threads: int) -> float:
-    """The largest distance, over cameras and as a fraction of the image's larger side, between
-    the principal points two copies of `rec` reach when adjusted with it freed from starts
-    `PROBE_SHIFT` up-right and down-left of the current one, each one pass of `PROBE_ITERATIONS`.
-    `rec` is not changed."""
-    ends = []
-    probe_cfg = replace(cfg, max_iterations=PROBE_ITERATIONS, outlier_scales=0)
-    for sign in (1.0, -1.0):
-        probe = pycolmap.Reconstruction(rec)
-        for cam in probe.cameras.values():
-            params = np.array(cam.params, dtype=float)
-            params[list(cam.principal_point_idxs())] += sign * PROBE_SHIFT * max(cam.width, cam.height)
-            cam.params = params
-        _final(probe, probe_cfg, num_threads, True)
-        ends.append({i: np.array([c.principal_point_x, c.principal_point_y]) for i, c in probe.cameras.items()})
-    return max((float(np.linalg.norm(ends[0][i] - ends[1][i])) / max(c.width, c.height) for i, c in rec.cameras.items()),
-               default=0.0)
+def _principal_point_sigma(rec: pycolmap.Reconstruction) -> float:
+    """How well the views of `rec` determine its principal points: over every camera, the larger
+    standard deviation of its principal point's x and y, as a fraction of the image's larger
+    side, from the covariance of a full adjustment with the principal point free (COLMAP's
+    `estimate_ba_covariance`, unit observation noise) scaled by the model's RMS reprojection
+    error (px). inf when COLMAP cannot estimate it (a rank-deficient problem: the point is not
+    determined). `rec` is not changed."""
+    o = pycolmap.BundleAdjustmentOptions()
+    o.refine_focal_length, o.refine_principal_point, o.refine_extra_params = True, True, True
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    problem = pycolmap.Reconstruction(rec)  # the adjuster holds pointers into the model's blocks
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(o, config, problem)
+    cov_options = pycolmap.BACovarianceOptions()
+    cov_options.params = pycolmap.BACovarianceOptionsParams.ALL
+    # COLMAP's 1e-8 called a noise-free synthetic model rank-deficient (tests/test_sfm.py); 1e-6
+    # gives the same deviations to 4 digits on every measured real and rendered model
+    cov_options.damping = 1e-6
+    cov = pycolmap.estimate_ba_covariance(cov_options, problem, adjuster)
+    if cov is None:
+        return math.inf
+    rms_px = math.sqrt(float(np.mean([p.error ** 2 for p in problem.points3D.values()])))
+    worst = 0.0
+    for cam in problem.cameras.values():
+        block = cov.get_other_params_cov(cam.params)
+        if block is None:
+            return math.inf
+        var = np.diag(np.asarray(block))[list(cam.principal_point_idxs())]
+        worst = max(worst, math.sqrt(float(np.max(var))) * rms_px / max(cam.width, cam.height))
+    return worst
 
 
 def _final(rec: pycolmap.Reconstruction, cfg: FinalBaConfig, num_threads: int, refine_pp: bool) -> dict:
