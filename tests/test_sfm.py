@@ -275,6 +275,31 @@ def test_refining_the_principal_point_recovers_an_off_centre_one(tmp_path):
     assert np.allclose(next(iter(auto.cameras.values())).params[1:3], [542.0, 364.0], atol=2.0)
 
 
+def test_auto_principal_point_stays_fixed_above_the_covariance_size_limit(tmp_path, monkeypatch):
+    """Above `PP_SIGMA_MAX_IMAGES` registered images the covariance (a dense matrix over every
+    pose) is not estimated: `auto` reports no sigma and keeps the principal point where it is,
+    even on a capture whose views determine it."""
+    import recon.core.sfm as sfm
+
+    db = tmp_path / "database.db"
+    pycolmap.set_random_seed(0)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 8, 400
+    o.camera_params = [1280.0, 542.0, 364.0, 0.0]
+    with pycolmap.Database.open(str(db)) as d:
+        pycolmap.synthesize_dataset(o, d)
+    rec = _map(db).reconstruction
+    for cam in rec.cameras.values():
+        cam.params = [cam.params[0], 512.0, 384.0, cam.params[3]]
+    under = _copy_model(rec, tmp_path / "under")
+    assert final_bundle_adjustment(under, FinalBaConfig(principal_point="auto"))["principal_point_refined"]
+    monkeypatch.setattr(sfm, "PP_SIGMA_MAX_IMAGES", rec.num_reg_images() - 1)
+    over = _copy_model(rec, tmp_path / "over")
+    summary = final_bundle_adjustment(over, FinalBaConfig(principal_point="auto"))
+    assert summary["principal_point_refined"] is False and summary["principal_point_sigma"] is None
+    assert np.allclose(next(iter(over.cameras.values())).params[1:3], [512.0, 384.0])
+
+
 def _arc_capture(db_path: Path, num_frames: int = 6, yaw_deg: float = 30.0, noise_px: float = 0.3
                  ) -> pycolmap.Reconstruction:
     """The capture that leaves the principal point loose: `num_frames` cameras on one arc at one

@@ -254,6 +254,11 @@ gives 3.0° instead of 0.014°. 0.2 % lies 3.6x above the constrained ones and 4
 sacre_coeur. It replaced a two-start probe test, which that render passed (the probes measure
 whether the adjustment converges to one point, not how well the views determine it)."""
 
+PP_SIGMA_MAX_IMAGES = 1000
+"""Auto principal point: above this many registered images the covariance is not estimated and
+the point stays fixed. COLMAP's estimate inverts the dense Schur complement over every pose
+(6 values per image): 288 MB of doubles at 1000 images, 7 GB at 5000 (orbit-100: 2.6 s)."""
+
 OUTLIER_SCALES = 3.0
 """The final adjustment's outlier threshold, in loss scales: after its first pass, observations
 more than this many Cauchy scales off (robust weight 1 / (1 + 3^2) = 10 %: the loss already all
@@ -357,12 +362,15 @@ def final_bundle_adjustment(rec: pycolmap.Reconstruction, cfg: FinalBaConfig = F
 
 
 def _principal_point_sigma(rec: pycolmap.Reconstruction) -> float:
-    """How well the views of `rec` determine its principal points: over every camera, the larger
-    standard deviation of its principal point's x and y, as a fraction of the image's larger
-    side, from the covariance of a full adjustment with the principal point free (COLMAP's
-    `estimate_ba_covariance`, unit observation noise) scaled by the model's RMS reprojection
-    error (px). inf when COLMAP cannot estimate it (a rank-deficient problem: the point is not
-    determined). `rec` is not changed."""
+    """How well the views of `rec` determine its principal points: over every camera of a
+    registered image, the larger standard deviation of its principal point's x and y, as a
+    fraction of the image's larger side, from the covariance of a full adjustment with the
+    principal point free (COLMAP's `estimate_ba_covariance`, unit observation noise) scaled by
+    the RMS of the points' mean reprojection errors (px). inf when COLMAP cannot estimate it (a
+    rank-deficient problem: the point is not determined) or the model has more than
+    `PP_SIGMA_MAX_IMAGES` registered images. `rec` is not changed."""
+    if rec.num_reg_images() > PP_SIGMA_MAX_IMAGES:
+        return math.inf
     o = pycolmap.BundleAdjustmentOptions()
     o.refine_focal_length, o.refine_principal_point, o.refine_extra_params = True, True, True
     config = pycolmap.BundleAdjustmentConfig()
@@ -380,7 +388,8 @@ def _principal_point_sigma(rec: pycolmap.Reconstruction) -> float:
         return math.inf
     rms_px = math.sqrt(float(np.mean([p.error ** 2 for p in problem.points3D.values()])))
     worst = 0.0
-    for cam in problem.cameras.values():
+    for camera_id in sorted({problem.image(i).camera_id for i in problem.reg_image_ids()}):
+        cam = problem.cameras[camera_id]
         block = cov.get_other_params_cov(cam.params)
         if block is None:
             return math.inf
