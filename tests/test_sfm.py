@@ -275,10 +275,11 @@ def test_refining_the_principal_point_recovers_an_off_centre_one(tmp_path):
     assert np.allclose(next(iter(auto.cameras.values())).params[1:3], [542.0, 364.0], atol=2.0)
 
 
-def test_auto_principal_point_stays_fixed_above_the_covariance_size_limit(tmp_path, monkeypatch):
+def test_auto_principal_point_stays_fixed_without_a_covariance(tmp_path, monkeypatch):
     """Above `PP_SIGMA_MAX_IMAGES` registered images the covariance (a dense matrix over every
-    pose) is not estimated: `auto` reports no sigma and keeps the principal point where it is,
-    even on a capture whose views determine it."""
+    pose) is not estimated, and an estimate COLMAP refuses counts as none: either way `auto`
+    reports no sigma and keeps the principal point where it is, even on a capture whose views
+    determine it."""
     import recon.core.sfm as sfm
 
     db = tmp_path / "database.db"
@@ -298,6 +299,17 @@ def test_auto_principal_point_stays_fixed_above_the_covariance_size_limit(tmp_pa
     summary = final_bundle_adjustment(over, FinalBaConfig(principal_point="auto"))
     assert summary["principal_point_refined"] is False and summary["principal_point_sigma"] is None
     assert np.allclose(next(iter(over.cameras.values())).params[1:3], [512.0, 384.0])
+    # an estimate COLMAP refuses (an exception, not None) counts as none: the point stays, the run goes on
+    monkeypatch.setattr(sfm, "PP_SIGMA_MAX_IMAGES", 1000)
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("Check failed")
+
+    monkeypatch.setattr(sfm.pycolmap, "estimate_ba_covariance", refuse)
+    refused = _copy_model(rec, tmp_path / "refused")
+    summary = final_bundle_adjustment(refused, FinalBaConfig(principal_point="auto"))
+    assert summary["applied"] and summary["principal_point_refined"] is False
+    assert summary["principal_point_sigma"] is None
 
 
 def _arc_capture(db_path: Path, num_frames: int = 6, yaw_deg: float = 30.0, noise_px: float = 0.3
