@@ -248,20 +248,28 @@ def test_outlier_pass_drops_the_observations_the_loss_discounts_and_keeps_the_re
     assert pose_errors(two, gt)[0] <= 1.1 * pose_errors(one, gt)[0]
 
 
-def test_refining_the_principal_point_recovers_an_off_centre_one(tmp_path):
-    """The synthetic camera's principal point moved to the image centre, as COLMAP assumes for a
-    photo: the default final adjustment keeps it there, the opt-in refinement finds the true one
-    back and the poses with it."""
+def _off_centre_capture(tmp_path: Path) -> tuple[pycolmap.Reconstruction, pycolmap.Reconstruction]:
+    """(mapped model, ground truth) of eight synthetic views all round 400 points, one 1024 x 768
+    camera whose true principal point (542, 364) lies 30 / 20 px off the centre; the mapped
+    model's principal point is moved to the centre, as COLMAP assumes for a photo."""
     db = tmp_path / "database.db"
     pycolmap.set_random_seed(0)
     o = pycolmap.SyntheticDatasetOptions()
     o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 8, 400
-    o.camera_params = [1280.0, 542.0, 364.0, 0.0]  # 30 / 20 px off the 1024 x 768 image's centre
+    o.camera_params = [1280.0, 542.0, 364.0, 0.0]
     with pycolmap.Database.open(str(db)) as d:
         gt = pycolmap.synthesize_dataset(o, d)
     rec = _map(db).reconstruction
     for cam in rec.cameras.values():
         cam.params = [cam.params[0], 512.0, 384.0, cam.params[3]]
+    return rec, gt
+
+
+def test_refining_the_principal_point_recovers_an_off_centre_one(tmp_path):
+    """The synthetic camera's principal point moved to the image centre, as COLMAP assumes for a
+    photo: the default final adjustment keeps it there, the opt-in refinement finds the true one
+    back and the poses with it."""
+    rec, gt = _off_centre_capture(tmp_path)
     fixed, free = _copy_model(rec, tmp_path / "fixed"), _copy_model(rec, tmp_path / "free")
     auto = _copy_model(rec, tmp_path / "auto")
     assert final_bundle_adjustment(fixed, FinalBaConfig())["principal_point_refined"] is False
@@ -282,16 +290,7 @@ def test_auto_principal_point_stays_fixed_without_a_covariance(tmp_path, monkeyp
     determine it."""
     import recon.core.sfm as sfm
 
-    db = tmp_path / "database.db"
-    pycolmap.set_random_seed(0)
-    o = pycolmap.SyntheticDatasetOptions()
-    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 8, 400
-    o.camera_params = [1280.0, 542.0, 364.0, 0.0]
-    with pycolmap.Database.open(str(db)) as d:
-        pycolmap.synthesize_dataset(o, d)
-    rec = _map(db).reconstruction
-    for cam in rec.cameras.values():
-        cam.params = [cam.params[0], 512.0, 384.0, cam.params[3]]
+    rec, _ = _off_centre_capture(tmp_path)
     under = _copy_model(rec, tmp_path / "under")
     assert final_bundle_adjustment(under, FinalBaConfig(principal_point="auto"))["principal_point_refined"]
     monkeypatch.setattr(sfm, "PP_SIGMA_MAX_IMAGES", rec.num_reg_images() - 1)
