@@ -292,13 +292,21 @@ def _adjustable(rec: pycolmap.Reconstruction, cfg: FinalBaConfig) -> bool:
     return cfg.loss != "none" and rec.num_reg_images() >= 2 and rec.num_points3D() > 0
 
 
+def _full_adjustment_options(refine_principal_point: bool) -> pycolmap.BundleAdjustmentOptions:
+    """The final adjustment's parameters: every focal length and distortion term, principal points
+    only when `refine_principal_point` (shared by `_adjust` and the covariance of
+    `_principal_point_sigma`, so `auto` judges the adjustment it would run)."""
+    o = pycolmap.BundleAdjustmentOptions()
+    o.refine_focal_length, o.refine_principal_point, o.refine_extra_params = True, bool(refine_principal_point), True
+    return o
+
+
 def _adjust(rec: pycolmap.Reconstruction, loss: str, scale_px: float, iterations: int, num_threads: int,
             refine_principal_point: bool = False) -> None:
     """One global bundle adjustment of `rec` in place (every pose, point, focal length and
     distortion; principal points fixed unless `refine_principal_point`) under `loss` of scale
     `scale_px`."""
-    o = pycolmap.BundleAdjustmentOptions()
-    o.refine_focal_length, o.refine_principal_point, o.refine_extra_params = True, bool(refine_principal_point), True
+    o = _full_adjustment_options(refine_principal_point)
     o.ceres.loss_function_type = {"cauchy": pycolmap.LossFunctionType.CAUCHY,
                                   "soft_l1": pycolmap.LossFunctionType.SOFT_L1,
                                   "huber": pycolmap.LossFunctionType.HUBER}[loss]
@@ -371,8 +379,7 @@ def _principal_point_sigma(rec: pycolmap.Reconstruction) -> float:
     `PP_SIGMA_MAX_IMAGES` registered images. `rec` is not changed."""
     if rec.num_reg_images() > PP_SIGMA_MAX_IMAGES:
         return math.inf
-    o = pycolmap.BundleAdjustmentOptions()
-    o.refine_focal_length, o.refine_principal_point, o.refine_extra_params = True, True, True
+    o = _full_adjustment_options(refine_principal_point=True)
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.reg_image_ids():
         config.add_image(image_id)
