@@ -6,6 +6,7 @@ the choice of the largest model and the model writers are checked in well under 
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import cv2  # noqa: F401  (before pycolmap, see tests/conftest.py)
@@ -134,8 +135,66 @@ def test_mapping_options_scale_pixel_thresholds_and_seed_every_stage():
     assert base.random_seed == base.mapper.random_seed == base.triangulation.random_seed == 5
     assert base.min_model_size == 3 and base.multiple_models and not base.ba_refine_principal_point
     summary = options_summary(mapping_options(px_scale=2.0))
-    assert summary["init_max_error"] == pytest.approx(8.0) and summary["init_min_tri_angle"] == 4.0
+    assert summary["init_max_error"] == pytest.approx(8.0) and summary["init_min_tri_angle"] == 8.0
     assert summary["min_num_matches"] == 15
+
+
+def _row_capture(db_path: Path, yaws_deg: tuple[float, ...], narrow_matches_all: bool = True,
+                 num_points: int = 600, shared: float = 0.4, noise_px: float = 0.3) -> list[str]:
+    """A database of cameras on one arc (10 units from a 4 x 3 x 1 block of `num_points` points,
+    yaw `yaws_deg`, focal 1500 px, 1024 x 768), keypoints projected with Gaussian noise of
+    `noise_px` px. The first two images match on every point, every other pair on a random
+    `shared` fraction of them (all verified, uncalibrated), so the first two are the mapper's
+    best-matched pair. Returns the image names in id order."""
+    pycolmap.set_random_seed(0)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, len(yaws_deg), 50
+    o.camera_params = [1500.0, 512.0, 384.0, 0.0]
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform([-2.0, -1.5, -0.5], [2.0, 1.5, 0.5], (num_points, 3))
+    with pycolmap.Database.open(str(db_path)) as db:
+        rec = pycolmap.synthesize_dataset(o, db)
+        cam = next(iter(rec.cameras.values()))
+        images = sorted(db.read_all_images(), key=lambda im: im.image_id)
+        for im, yaw in zip(images, np.deg2rad(yaws_deg)):
+            c, s = np.cos(yaw), np.sin(yaw)
+            cam_from_world_R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+            centre_in_world = np.array([10.0 * s, 0.0, -10.0 * c])
+            uv = np.asarray(cam.img_from_cam((xyz - centre_in_world) @ cam_from_world_R.T))
+            db.update_keypoints(im.image_id, (uv + rng.normal(0.0, noise_px, uv.shape)).astype(np.float32))
+        first_two = {images[0].image_id, images[1].image_id}
+        for a, b in itertools.combinations(images, 2):
+            db.delete_matches(a.image_id, b.image_id)
+            if db.exists_two_view_geometry(a.image_id, b.image_id):
+                db.delete_two_view_geometry(a.image_id, b.image_id)
+            every = narrow_matches_all and {a.image_id, b.image_id} == first_two
+            idx = np.arange(num_points) if every else np.flatnonzero(rng.random(num_points) < shared)
+            matches = np.stack([idx, idx], axis=1).astype(np.uint32)
+            db.write_matches(a.image_id, b.image_id, matches)
+            geometry = pycolmap.TwoViewGeometry()
+            geometry.config = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+            geometry.inlier_matches = matches
+            db.write_two_view_geometry(a.image_id, b.image_id, geometry)
+    return [im.name for im in images]
+
+
+def test_a_wide_pair_starts_the_model_before_a_narrow_one_with_more_matches(tmp_path):
+    """sacre_coeur's failure, reduced: the best-matched pair is 6 deg apart (above the 4 deg the
+    mapper used to accept), two wider pairs have fewer matches. At 8 deg the model starts from
+    a wide pair (docs/decisions.md, "Initial pair at 8 deg")."""
+    names = _row_capture(tmp_path / "database.db", (-3.0, 3.0, -20.0, 20.0))
+    res = run_incremental(tmp_path / "database.db", tmp_path, mapping_options(seed=0, num_threads=1))
+    initial = [set(s["initial_pair"]) for s in res.growth if s["initial_pair"]]
+    assert res.model_sizes == [4]
+    assert initial[0] != set(names[:2]) and initial[0] & {names[2], names[3]}
+
+
+def test_a_capture_of_only_narrow_pairs_still_initialises(tmp_path):
+    """No pair reaches 8 deg (cameras 3-6 deg apart): COLMAP's pipeline relaxes its initial-pair
+    thresholds by itself (inliers, then angle, halved twice) and maps every image."""
+    _row_capture(tmp_path / "database.db", (-3.0, 3.0, 0.0), narrow_matches_all=False, shared=0.8)
+    res = run_incremental(tmp_path / "database.db", tmp_path, mapping_options(seed=0, num_threads=1))
+    assert res.model_sizes == [3]
 
 
 def test_write_model_atomic_replaces_the_model_and_leaves_no_temporary_folder(tmp_path):
