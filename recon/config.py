@@ -317,6 +317,12 @@ class SfmConfig:
     scaled filter kept observations 4-7.7 px off and measured higher reprojection and rotation
     errors (docs/decisions.md, "Mapper thresholds in full-resolution px")."""
 
+    retries: int = 2
+    """When the largest model leaves out images the verified pairs connect to it, map again with
+    the next seeds (`seed + 1`, ...) up to this many times and keep the model registering the most
+    images (`recon.core.sfm.map_with_retries`; scenes of at most `RETRY_MAX_IMAGES` connected
+    images). 0 = one mapping. Deterministic for a fixed seed."""
+
     final_ba_loss: str = field(default="cauchy", metadata={"choices": "recon.core.sfm:FINAL_BA_LOSSES"})
     """A last global bundle adjustment of the finished model under this robust loss (cauchy,
     soft_l1, huber), then the mapper's own 4 px filter; none = the mapper's model as it ends
@@ -353,6 +359,8 @@ class SfmConfig:
             raise UserError(f"--mapper {self.mapper!r}: choose one of {', '.join(MAPPERS)}")
         if self.num_threads == 0 or self.num_threads < -1:
             raise UserError(f"sfm.num_threads {self.num_threads}: use -1 (all cores) or at least 1")
+        if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
+            raise UserError(f"sfm.retries {self.retries!r}: a whole number >= 0 (0 = map once)")
         if self.final_ba_loss not in FINAL_BA_LOSSES:
             raise UserError(f"sfm.final_ba_loss {self.final_ba_loss!r}: choose one of {', '.join(FINAL_BA_LOSSES)}")
         if isinstance(self.final_ba_scale_px, bool) or not isinstance(self.final_ba_scale_px, (int, float)) \

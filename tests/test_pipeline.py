@@ -431,3 +431,20 @@ def test_fountain_real_scene_reduced(tmp_path):
     assert rep.ok, rep.message
     assert rep.num_images == 11 and rep.registered_images >= 10
     assert rep.mean_track_length > 3.0 and rep.mean_reprojection_error < 1.5
+
+
+@pytest.mark.slow
+@pytest.mark.requires_shared("scenes/sacre_coeur/images")
+def test_sacre_coeur_registers_every_photo_under_simulate_needed(tmp_path):
+    """Ten internet photos with unknown focal lengths (about 20 s): under `--simulate needed` the
+    mapping with seed 0 keeps 9 of the 10 (its first model starts from a near-planar pair and
+    collapses); `sfm.retries` maps again with the next seeds and keeps the model of all ten
+    (docs/decisions.md, "Mapper retries")."""
+    cfg = RunConfig.from_options(out=tmp_path / "out", method="extra-affine", progress=False, pairs="exhaustive",
+                                 simulate="needed")
+    rep = run_scene(DATA / "scenes" / "sacre_coeur", cfg)
+    assert rep.ok, rep.message
+    assert rep.registered_images == 10
+    chosen = [a for a in rep.sfm_attempts if a["chosen"]]
+    assert len(chosen) == 1 and chosen[0]["registered"] == 10
+    assert all(a["registered"] <= 10 for a in rep.sfm_attempts)

@@ -14,7 +14,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from recon.core.sfm import (PP_SIGMA_MAX, FinalBaConfig, GrowthStep, final_bundle_adjustment, mapping_options,
+from recon.core.sfm import (PP_SIGMA_MAX, RETRY_MAX_IMAGES, FinalBaConfig, GrowthStep, SfmResult,
+                            connected_images, final_bundle_adjustment, map_with_retries, mapping_options,
                             model_stats, options_summary, registered_names, run_incremental, write_model_atomic,
                             write_points_ply)
 from recon.eval.evaluate import evaluate_model, poses_from_estimate
@@ -120,6 +121,70 @@ def test_two_unconnected_scenes_give_two_models_largest_first(tmp_path):
     assert {g["model"] for g in res.growth} == {0, 1}
     assert len(res.growth) == (5 - 1) + (4 - 1)  # an initial pair, then one step per image, per model
     assert small.num_reg_images() == 4
+
+
+def test_connected_images_counts_the_largest_component_of_verified_pairs(tmp_path):
+    db = tmp_path / "database.db"
+    synthesize(db, num_frames=5, num_points3D=100)
+    synthesize(db, num_frames=4, num_points3D=100)  # a second scene, no match with the first
+    assert connected_images(db, 15) == 5
+    assert connected_images(db, 10**6) == 0  # no pair that strong: no component
+
+
+class _Model:
+    """The two counts `map_with_retries` ranks models by."""
+
+    def __init__(self, images: int) -> None:
+        self.images = images
+
+    def num_reg_images(self) -> int:
+        return self.images
+
+    def num_points3D(self) -> int:
+        return 100 * self.images
+
+
+def _fake_mapping(registered_by_seed: dict[int, int], calls: list[int]):
+    """A stand-in for `run_incremental`: seed -> a model of that many images (0 = none)."""
+    def fake(db_path, image_dir, options, on_step=None):
+        calls.append(options.random_seed)
+        n = registered_by_seed[options.random_seed]
+        return SfmResult(_Model(n) if n else None, 1 if n else 0, [n] if n else [])
+    return fake
+
+
+@pytest.mark.parametrize("registered_by_seed, retries, want_calls, want_seed", [
+    ({7: 10}, 2, [7], 7),                  # every connected image registered: no retry
+    ({7: 9, 8: 10}, 2, [7, 8], 8),         # one image out: the next seed registers it, stop
+    ({7: 9, 8: 8, 9: 9}, 2, [7, 8, 9], 7),  # no better model: the first (tie -> the earlier seed)
+    ({7: 0, 8: 3, 9: 6}, 2, [7, 8, 9], 9),  # no model at first: the best of the retries
+    ({7: 9}, 0, [7], 7),                    # retries off
+])
+def test_mapping_is_retried_with_the_next_seeds_while_images_stay_out(
+        tmp_path, monkeypatch, registered_by_seed, retries, want_calls, want_seed):
+    import recon.core.sfm as sfm_mod
+
+    calls: list[int] = []
+    monkeypatch.setattr(sfm_mod, "run_incremental", _fake_mapping(registered_by_seed, calls))
+    monkeypatch.setattr(sfm_mod, "connected_images", lambda db_path, min_num_matches: 10)
+    res, attempts = map_with_retries(tmp_path / "database.db", tmp_path, lambda seed: mapping_options(seed), 7, retries)
+    assert calls == want_calls and [a["seed"] for a in attempts] == want_calls
+    assert [a["seed"] for a in attempts if a["chosen"]] == [want_seed]
+    assert _registered_of(res) == registered_by_seed[want_seed]
+
+
+def test_a_large_scene_is_not_retried(tmp_path, monkeypatch):
+    import recon.core.sfm as sfm_mod
+
+    calls: list[int] = []
+    monkeypatch.setattr(sfm_mod, "run_incremental", _fake_mapping({0: 5, 1: 200}, calls))
+    monkeypatch.setattr(sfm_mod, "connected_images", lambda db_path, min_num_matches: RETRY_MAX_IMAGES + 1)
+    map_with_retries(tmp_path / "database.db", tmp_path, lambda seed: mapping_options(seed), 0, 2)
+    assert calls == [0]
+
+
+def _registered_of(res: SfmResult) -> int:
+    return 0 if res.reconstruction is None else res.reconstruction.num_reg_images()
 
 
 def test_mapping_options_scale_pixel_thresholds_and_seed_every_stage():

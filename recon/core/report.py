@@ -47,6 +47,11 @@
   and `num_points3D` of that model right after the step, and `initial_pair` (both images of the
   model's initial pair, by image id, on the model's first step; null on the others and in runs
   made before version 2) (kept from the run that built the model when the model is reused);
+* `sfm_attempts`: one row per mapping of the incremental mapper (`sfm.retries`,
+  `recon.core.sfm.map_with_retries`): `seed`, `model_sizes`, `registered` and `points` of its
+  largest model, `chosen` (the model kept, whose steps `sfm_growth` lists; the live progress and
+  Rerun's growth replay show the first mapping's); one row unless images were left out; empty
+  for the global mapper and in reports made before the field;
 * `final_ba`: the final robust bundle adjustment (`recon.core.sfm.final_bundle_adjustment`):
   `loss`, `applied`, and when applied `scale_px`, `auto_scale`, `mean_reprojection_error_before` / `_after`,
   `observations_dropped` by the mapper's filter afterwards, `seconds`.
@@ -137,6 +142,7 @@ class RunReport:
     sfm_options: dict[str, Any] = field(default_factory=dict)
     colmap_options: dict[str, Any] = field(default_factory=dict)
     sfm_growth: list[dict[str, Any]] = field(default_factory=list)
+    sfm_attempts: list[dict[str, Any]] = field(default_factory=list)
     final_ba: dict[str, Any] = field(default_factory=dict)
     pairs: list[PairRow] = field(default_factory=list)
     skipped: list[dict[str, str]] = field(default_factory=list)

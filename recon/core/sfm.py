@@ -233,6 +233,85 @@ def run_incremental(db_path: str | Path, image_dir: str | Path, options: pycolma
                      hook_errors[0] if hook_errors else None)
 
 
+RETRY_MAX_IMAGES = 100
+"""`map_with_retries` retries only scenes whose verified pair graph connects at most this many
+images: a retry repeats the whole mapping, seconds on small scenes, minutes on a capture of
+hundreds of photos, where a missing frame or two costs less than doubling the run."""
+
+
+def connected_images(db_path: str | Path, min_num_matches: int) -> int:
+    """Images in the largest component of the database's verified pair graph, pairs of at least
+    `min_num_matches` inlier matches (the mapper ignores the others): what one model can hold."""
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+    finally:
+        db.close()
+    parent: dict[int, int] = {}
+
+    def root(i: int) -> int:
+        while parent.setdefault(i, i) != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for pid, n in zip(pair_ids, counts):
+        if n >= min_num_matches:
+            a, b = pycolmap.pair_id_to_image_pair(pid)
+            parent[root(int(a))] = root(int(b))
+    sizes: dict[int, int] = {}
+    for i in list(parent):
+        r = root(i)
+        sizes[r] = sizes.get(r, 0) + 1
+    return max(sizes.values(), default=0)
+
+
+def map_with_retries(db_path: str | Path, image_dir: str | Path,
+                     options_for_seed: Callable[[int], pycolmap.IncrementalPipelineOptions], seed: int,
+                     retries: int, on_step: StepHook | None = None) -> tuple[SfmResult, list[dict]]:
+    """`run_incremental` with `options_for_seed(seed)`; while its largest model leaves out images
+    that the verified pairs connect to it (`connected_images`), up to `retries` more mappings
+    with seeds `seed + 1`, `seed + 2`, ... (retries do not call `on_step`). Returns the model
+    registering the most images (then the most points; the first on a tie) and one summary per
+    mapping ({seed, model_sizes, registered, points, chosen}).
+
+    Why: on a few photos with unknown focal lengths the mapper can start from a pair whose
+    geometry is nearly a homography and grow a model that collapses; which pair and whether a
+    later model recovers depends on RANSAC draws (sacre_coeur under `--simulate needed`: 9 of 10
+    photos with seed 0, 10 of 10 with seeds 1 and 2; docs/decisions.md, "Mapper retries"). The
+    result stays deterministic for a fixed seed. Scenes of more than `RETRY_MAX_IMAGES` connected
+    images are not retried."""
+    first = run_incremental(db_path, image_dir, options_for_seed(seed), on_step)
+    best, best_index = first, 0
+    attempts = [_attempt(first, seed)]
+    if retries > 0:
+        reachable = connected_images(db_path, options_for_seed(seed).min_num_matches)
+        k = 0
+        while k < retries and reachable <= RETRY_MAX_IMAGES and _registered(best) < reachable:
+            k += 1
+            res = run_incremental(db_path, image_dir, options_for_seed(seed + k))
+            attempts.append(_attempt(res, seed + k))
+            if _quality(res) > _quality(best):
+                best, best_index = res, k
+    attempts[best_index]["chosen"] = True
+    return best, attempts
+
+
+def _registered(res: SfmResult) -> int:
+    return 0 if res.reconstruction is None else int(res.reconstruction.num_reg_images())
+
+
+def _quality(res: SfmResult) -> tuple[int, int]:
+    rec = res.reconstruction
+    return (0, 0) if rec is None else (int(rec.num_reg_images()), int(rec.num_points3D()))
+
+
+def _attempt(res: SfmResult, seed: int) -> dict:
+    registered, points = _quality(res)
+    return {"seed": int(seed), "model_sizes": list(res.model_sizes), "registered": registered, "points": points,
+            "chosen": False}
+
+
 AUTO_SCALE_FACTOR = 2.0
 """The final adjustment's automatic loss scale, in units of the model's median point error: a
 point's mean reprojection error over its observations is about 1.2 sigma for Gaussian keypoint

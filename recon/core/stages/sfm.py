@@ -34,10 +34,12 @@ from recon.core.state import fingerprint
 log = logging.getLogger(__name__)
 
 
-def mapping_options(cfg: RunConfig, px_scale: float) -> pycolmap.IncrementalPipelineOptions:
-    """`recon.core.sfm.mapping_options` for this run: seeded, pixel thresholds in full-resolution
-    px, or scaled by the working-to-full-resolution factor `px_scale` with `sfm.scale_thresholds`."""
-    return sfm.mapping_options(cfg.seed, cfg.sfm.num_threads, px_scale if cfg.sfm.scale_thresholds else 1.0)
+def mapping_options(cfg: RunConfig, px_scale: float, seed: int | None = None) -> pycolmap.IncrementalPipelineOptions:
+    """`recon.core.sfm.mapping_options` for this run: seeded (`seed`, default the run's), pixel
+    thresholds in full-resolution px, or scaled by the working-to-full-resolution factor
+    `px_scale` with `sfm.scale_thresholds`."""
+    return sfm.mapping_options(cfg.seed if seed is None else seed, cfg.sfm.num_threads,
+                               px_scale if cfg.sfm.scale_thresholds else 1.0)
 
 
 def final_ba_config(cfg: RunConfig, px_scale: float) -> sfm.FinalBaConfig:
@@ -76,6 +78,7 @@ class Sfm:
             run.report.sfm_options = {"mapper": "global", **global_options_summary(global_options(run.cfg.seed))}
         else:
             run.report.sfm_options = options_dict(mapping_options(run.cfg, run.px_scale()))
+            run.report.sfm_options["retries"] = run.cfg.sfm.retries
         run.report.sfm_options["final_ba"] = dataclasses.asdict(final_ba_config(run.cfg, run.px_scale()))
         return fingerprint("sfm", run.keys.get("verify"), run.report.sfm_options)
 
@@ -88,12 +91,14 @@ class Sfm:
         report.num_models = int(record.get("num_models", 1))
         report.model_sizes = list(record.get("model_sizes", [rec.num_reg_images()]))
         report.sfm_growth = list(record.get("sfm_growth", []))
+        report.sfm_attempts = list(record.get("sfm_attempts", []))
         report.final_ba = dict(record.get("final_ba", {}))
         run.data.reconstruction = rec
         return True
 
     def run(self, run: Run) -> dict[str, Any] | None:
         advance = run.bar(len(run.data.scene.images))
+        report = run.report
 
         def step(s: sfm.GrowthStep, live: pycolmap.Reconstruction) -> None:
             advance(2 if s.registered_images == 2 else 1)
@@ -102,10 +107,17 @@ class Sfm:
         if run.cfg.sfm.mapper == "global":  # GLOMAP: no registration steps to report
             res = run_global(run.db_path, run.image_dir, global_options(run.cfg.seed, run.cfg.sfm.num_threads))
         else:
-            res = sfm.run_incremental(run.db_path, run.image_dir, mapping_options(run.cfg, run.px_scale()),
-                                      on_step=step)
+            px = run.px_scale()
+            res, attempts = sfm.map_with_retries(run.db_path, run.image_dir,
+                                                 lambda seed: mapping_options(run.cfg, px, seed),
+                                                 run.cfg.seed, run.cfg.sfm.retries, on_step=step)
+            report.sfm_attempts = attempts
+            if len(attempts) > 1:
+                chosen = next(a for a in attempts if a["chosen"])
+                log.info("mapping retried with seeds %s: kept seed %d (%d images)",
+                         [a["seed"] for a in attempts[1:]], chosen["seed"], chosen["registered"])
         advance(done=True)
-        report, rec = run.report, res.reconstruction
+        rec = res.reconstruction
         report.num_models, report.model_sizes, report.sfm_growth = res.num_models, res.model_sizes, res.growth
         if res.hook_error:
             run.warn(f"the SfM progress hook failed and was switched off: {res.hook_error}")
@@ -120,4 +132,4 @@ class Sfm:
             return None  # nothing to reuse next time
         sfm.write_model_atomic(rec, self.model_dir(run))
         return {"num_models": res.num_models, "model_sizes": res.model_sizes, "sfm_growth": res.growth,
-                "final_ba": report.final_ba}
+                "sfm_attempts": report.sfm_attempts, "final_ba": report.final_ba}
