@@ -23,8 +23,9 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   pair of internet photos with many matches and a 6.8 deg angle started sacre_coeur's first
   model, which collapsed; whether a later model recovered all ten photos depended on the seed
   and on sub-pixel keypoint changes (3 of 10 registered with one track-refinement setting). At
-  8 deg every database measured maps as well or better, and better than at COLMAP's 16 deg on
-  the two-group renders (docs/decisions.md, "Initial pair at 8 deg").
+  8 deg the databases measured map as well or better, better than at COLMAP's 16 deg on the
+  two-group renders, but for one seed of one (sacre_coeur under `--simulate needed`: 9 of 10
+  photos), which `map_with_retries` catches (docs/decisions.md, "Initial pair at 8 deg").
 * `mapper.abs_pose_min_num_inliers` 30 -> 15, `abs_pose_min_inlier_ratio` 0.25 -> 0.15: a new
   view far from the others sees fewer of the existing 3D points.
 * `min_num_matches` 15 (pairs with fewer verified matches are ignored) and `min_model_size`
