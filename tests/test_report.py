@@ -120,6 +120,13 @@ def test_summary_table_shows_the_headline_numbers():
     assert "812" in _row(text, "peak memory (MB)")
 
 
+def test_summary_table_names_the_mapping_attempts_only_when_retried():
+    assert "mapping attempts" not in _table_text(_report(sfm_attempts=[{"seed": 0, "registered": 3, "chosen": True}]))
+    text = _table_text(_report(sfm_attempts=[{"seed": 0, "registered": 9, "chosen": False},
+                                             {"seed": 1, "registered": 10, "chosen": True}]))
+    assert "0: 9, 1: 10 (kept)" in _row(text, "mapping attempts (seed: images)")
+
+
 def test_summary_table_of_a_run_without_model():
     rep = _report(status="no_model", message="no model", mean_reprojection_error=None, registered_images=0,
                   tracks={"merged": {"mean_length": 2.0}, "unmerged": {"mean_length": 2.0}})

@@ -264,6 +264,9 @@ def summary_table(report: RunReport):
     t.add_row("status", report.status if report.ok else f"[red]{report.status}[/red]")
     t.add_row("images (usable / skipped)", f"{report.num_images} / {len(report.skipped)}")
     t.add_row("registered images", f"{report.registered_images} / {report.num_images}")
+    if len(report.sfm_attempts) > 1:  # the mapper was retried (`sfm.retries`): images per seed
+        t.add_row("  mapping attempts (seed: images)", ", ".join(
+            f"{a['seed']}: {a['registered']}" + (" (kept)" if a.get("chosen") else "") for a in report.sfm_attempts))
     t.add_row("3D points", str(report.num_points3D))
     t.add_row("mean track length (model)", f"{report.mean_track_length:.2f}")
     merged = report.tracks.get("merged", {})
