@@ -243,28 +243,23 @@ hundreds of photos, where a missing frame or two costs less than doubling the ru
 def connected_images(db_path: str | Path, min_num_matches: int) -> int:
     """Images in the largest component of the database's verified pair graph, pairs of at least
     `min_num_matches` inlier matches (the mapper ignores the others): what one model can hold."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     db = pycolmap.Database.open(str(db_path))
     try:
         pair_ids, counts = db.read_two_view_geometry_num_inliers()
     finally:
         db.close()
-    parent: dict[int, int] = {}
-
-    def root(i: int) -> int:
-        while parent.setdefault(i, i) != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for pid, n in zip(pair_ids, counts):
-        if n >= min_num_matches:
-            a, b = pycolmap.pair_id_to_image_pair(pid)
-            parent[root(int(a))] = root(int(b))
-    sizes: dict[int, int] = {}
-    for i in list(parent):
-        r = root(i)
-        sizes[r] = sizes.get(r, 0) + 1
-    return max(sizes.values(), default=0)
+    pairs = [pycolmap.pair_id_to_image_pair(pid) for pid, n in zip(pair_ids, counts) if n >= min_num_matches]
+    if not pairs:
+        return 0
+    ids = {i: k for k, i in enumerate(sorted({int(i) for pair in pairs for i in pair}))}
+    u = np.array([ids[int(a)] for a, _ in pairs])
+    v = np.array([ids[int(b)] for _, b in pairs])
+    graph = coo_matrix((np.ones(len(u), np.int8), (u, v)), shape=(len(ids), len(ids)))
+    _, label = connected_components(graph, directed=False)
+    return int(np.bincount(label).max())
 
 
 def map_with_retries(db_path: str | Path, image_dir: str | Path,
@@ -282,11 +277,12 @@ def map_with_retries(db_path: str | Path, image_dir: str | Path,
     photos with seed 0, 10 of 10 with seeds 1 and 2; docs/decisions.md, "Mapper retries"). The
     result stays deterministic for a fixed seed. Scenes of more than `RETRY_MAX_IMAGES` connected
     images are not retried."""
-    first = run_incremental(db_path, image_dir, options_for_seed(seed), on_step)
+    options = options_for_seed(seed)
+    first = run_incremental(db_path, image_dir, options, on_step)
     best, best_index = first, 0
     attempts = [_attempt(first, seed)]
     if retries > 0:
-        reachable = connected_images(db_path, options_for_seed(seed).min_num_matches)
+        reachable = connected_images(db_path, options.min_num_matches)
         k = 0
         while k < retries and reachable <= RETRY_MAX_IMAGES and _registered(best) < reachable:
             k += 1
