@@ -284,7 +284,7 @@ def map_with_retries(db_path: str | Path, image_dir: str | Path,
     if retries > 0:
         reachable = connected_images(db_path, options.min_num_matches)
         k = 0
-        while k < retries and reachable <= RETRY_MAX_IMAGES and _registered(best) < reachable:
+        while k < retries and reachable <= RETRY_MAX_IMAGES and _quality(best)[0] < reachable:
             k += 1
             res = run_incremental(db_path, image_dir, options_for_seed(seed + k))
             attempts.append(_attempt(res, seed + k))
@@ -294,11 +294,8 @@ def map_with_retries(db_path: str | Path, image_dir: str | Path,
     return best, attempts
 
 
-def _registered(res: SfmResult) -> int:
-    return 0 if res.reconstruction is None else int(res.reconstruction.num_reg_images())
-
-
 def _quality(res: SfmResult) -> tuple[int, int]:
+    """(registered images, points) of the result's model; (0, 0) without one."""
     rec = res.reconstruction
     return (0, 0) if rec is None else (int(rec.num_reg_images()), int(rec.num_points3D()))
 
