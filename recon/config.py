@@ -323,6 +323,12 @@ class SfmConfig:
     images (`recon.core.sfm.map_with_retries`; scenes of at most `RETRY_MAX_IMAGES` connected
     images). 0 = one mapping. Deterministic for a fixed seed."""
 
+    structure_less_fallback: bool = False
+    """COLMAP 4's structure-less registration fallback (an image seeing too few 3D points is
+    registered from its 2D-2D correspondences to registered images). Off: in the benchmarks' databases it
+    ran only inside a collapsing model, where one of its RANSACs took 7.7 s
+    (`recon.core.sfm` module doc; docs/decisions.md, "Structure-less registration off")."""
+
     final_ba_loss: str = field(default="cauchy", metadata={"choices": "recon.core.sfm:FINAL_BA_LOSSES"})
     """A last global bundle adjustment of the finished model under this robust loss (cauchy,
     soft_l1, huber), then the mapper's own 4 px filter; none = the mapper's model as it ends

@@ -199,6 +199,8 @@ def test_mapping_options_scale_pixel_thresholds_and_seed_every_stage():
         assert o.triangulation.complete_max_reproj_error == pytest.approx(4.0 * factor)
     assert base.random_seed == base.mapper.random_seed == base.triangulation.random_seed == 5
     assert base.min_model_size == 3 and base.multiple_models and not base.ba_refine_principal_point
+    assert not base.structure_less_registration_fallback  # docs/decisions.md, "Structure-less registration off"
+    assert mapping_options(structure_less_fallback=True).structure_less_registration_fallback
     summary = options_summary(mapping_options(px_scale=2.0))
     assert summary["init_max_error"] == pytest.approx(8.0) and summary["init_min_tri_angle"] == 8.0
     assert summary["min_num_matches"] == 15
@@ -305,6 +307,8 @@ def test_the_pipeline_maps_with_colmaps_full_resolution_thresholds_unless_asked_
     assert plain.triangulation.complete_max_reproj_error == pytest.approx(4.0)
     assert scaled.mapper.filter_max_reproj_error == pytest.approx(8.0)
     assert scaled.mapper.abs_pose_max_error == pytest.approx(24.0)
+    fallback = stage_options(build_run_config(settings=["sfm.structure_less_fallback=true"]), px_scale=2.0)
+    assert fallback.structure_less_registration_fallback and not plain.structure_less_registration_fallback
 
 
 def _copy_model(rec: pycolmap.Reconstruction, folder: Path) -> pycolmap.Reconstruction:

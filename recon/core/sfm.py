@@ -53,6 +53,14 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   values in full-resolution px as COLMAP's own pipeline applies them, unless
   `sfm.scale_thresholds`: scaling them let observations 4-7.7 px off stay in the model on 3072 px
   photos and measured worse (`recon.config.SfmConfig.scale_thresholds`).
+* `structure_less_registration_fallback` True -> False (COLMAP 3.x's behaviour; COLMAP 4
+  registers an image that sees too few 3D points from its 2D-2D correspondences instead): in
+  every database of the benchmarks (real scenes, both pipelines, the difficulty curve, the
+  rendered scenes) the fallback ran only in one mapping, sacre_coeur under `--simulate needed`
+  with seed 0, where a model started from a weak triplet had already lost its points: it
+  registered four more images that way and one structure-less RANSAC took 7.7 s, the failed
+  mapping 8-9.5 s against 0.35 s without it (retried either way, 10 of 10 with seed 1;
+  docs/decisions.md, "Structure-less registration off"). `sfm.structure_less_fallback` turns it on.
 * `random_seed`: seeds every RANSAC in the mapper; bundle adjustment with several threads can
   still differ in the last digits (Ceres sums in thread order), so results are reproducible
   for a fixed seed up to float noise, and bit-exact only with `num_threads=1`.
@@ -91,10 +99,11 @@ def threshold_scale(px_scale: float) -> float:
     return float(min(max(px_scale, 1.0), 3.0))
 
 
-def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0, num_images: int | None = None
-                    ) -> pycolmap.IncrementalPipelineOptions:
+def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0, num_images: int | None = None,
+                    structure_less_fallback: bool = False) -> pycolmap.IncrementalPipelineOptions:
     """IncrementalPipelineOptions for a small wide-baseline scene (see module doc); with
-    `num_images == 2` also `allow_two_view_model`."""
+    `num_images == 2` also `allow_two_view_model`; `structure_less_fallback` turns COLMAP's
+    structure-less registration back on (off here, see module doc)."""
     f = threshold_scale(px_scale)
     o = pycolmap.IncrementalPipelineOptions()
     o.min_num_matches = 15
@@ -106,6 +115,7 @@ def mapping_options(seed: int = 0, num_threads: int = -1, px_scale: float = 1.0,
     o.ba_refine_focal_length = True
     o.ba_refine_principal_point = False
     o.ba_refine_extra_params = True
+    o.structure_less_registration_fallback = bool(structure_less_fallback)
     m = o.mapper
     m.init_min_tri_angle = 8.0
     m.init_min_num_inliers = 50

@@ -39,7 +39,8 @@ def mapping_options(cfg: RunConfig, px_scale: float, seed: int | None = None) ->
     thresholds in full-resolution px, or scaled by the working-to-full-resolution factor
     `px_scale` with `sfm.scale_thresholds`."""
     return sfm.mapping_options(cfg.seed if seed is None else seed, cfg.sfm.num_threads,
-                               px_scale if cfg.sfm.scale_thresholds else 1.0)
+                               px_scale if cfg.sfm.scale_thresholds else 1.0,
+                               structure_less_fallback=cfg.sfm.structure_less_fallback)
 
 
 def final_ba_config(cfg: RunConfig, px_scale: float) -> sfm.FinalBaConfig:
