@@ -24,8 +24,9 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   model, which collapsed; whether a later model recovered all ten photos depended on the seed
   and on sub-pixel keypoint changes (3 of 10 registered with one track-refinement setting). At
   8 deg the databases measured map as well or better, better than at COLMAP's 16 deg on the
-  two-group renders, but for one seed of one (sacre_coeur under `--simulate needed`: 9 of 10
-  photos), which `map_with_retries` catches (docs/decisions.md, "Initial pair at 8 deg").
+  two-group renders, but for one seed of one (sacre_coeur under `--simulate needed`: 5 of 10
+  photos in its largest model, 9 of 10 with the structure-less fallback below), which
+  `map_with_retries` catches (docs/decisions.md, "Initial pair at 8 deg").
 * `mapper.abs_pose_min_num_inliers` 30 -> 15, `abs_pose_min_inlier_ratio` 0.25 -> 0.15: a new
   view far from the others sees fewer of the existing 3D points.
 * `min_num_matches` 15 (pairs with fewer verified matches are ignored) and `min_model_size`
@@ -283,8 +284,8 @@ def map_with_retries(db_path: str | Path, image_dir: str | Path,
 
     Why: on a few photos with unknown focal lengths the mapper can start from a pair whose
     geometry is nearly a homography and grow a model that collapses; which pair and whether a
-    later model recovers depends on RANSAC draws (sacre_coeur under `--simulate needed`: 9 of 10
-    photos with seed 0, 10 of 10 with seeds 1 and 2; docs/decisions.md, "Mapper retries"). The
+    later model recovers depends on RANSAC draws (sacre_coeur under `--simulate needed`: models of
+    5 and 3 photos with seed 0, 10 of 10 with seeds 1 to 11; docs/decisions.md, "Mapper retries"). The
     result stays deterministic for a fixed seed. Scenes of more than `RETRY_MAX_IMAGES` connected
     images are not retried."""
     options = options_for_seed(seed)
