@@ -502,3 +502,20 @@ def test_final_adjustment_off_leaves_the_model_as_the_mapper_made_it(tmp_path):
     assert final_bundle_adjustment(rec, FinalBaConfig(loss="none")) == {"loss": "none", "applied": False}
     for i, q in before.items():
         assert np.array_equal(rec.image(i).cam_from_world().rotation.quat, q)
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_final_adjustment_prints_colmaps_solver_report_only_when_verbose(tmp_path, capfd, monkeypatch, verbose):
+    """COLMAP writes a 10-line solver report per adjustment to stderr past its own log level; a
+    run shows it only under `recon -v` (`recon.log.colmap_verbose`), with the same result."""
+    import recon.core.sfm as sfm
+
+    db = tmp_path / "database.db"
+    synthesize(db, num_frames=5, num_points3D=150, keypoint_noise_px=0.3)
+    rec = _map(db).reconstruction
+    monkeypatch.setattr(sfm, "colmap_verbose", lambda: verbose)
+    capfd.readouterr()
+    info = final_bundle_adjustment(rec, FinalBaConfig())
+    err = capfd.readouterr().err
+    assert info["applied"]
+    assert ("Bundle adjustment report" in err) == verbose

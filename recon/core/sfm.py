@@ -81,6 +81,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from recon.log import colmap_verbose
+
 # One thread for mapping: multi-threaded bundle adjustment can vary with machine load (one
 # rendered 480 px scene once gave no model under heavy load), and on fountain_P11 one thread
 # took 3.88 s against 3.79 s with two, for the identical model.
@@ -403,6 +405,9 @@ def _adjust(rec: pycolmap.Reconstruction, loss: str, scale_px: float, iterations
     o.ceres.loss_function_scale = scale_px
     o.ceres.solver_options.max_num_iterations = int(iterations)
     o.ceres.solver_options.num_threads = int(num_threads)
+    # COLMAP prints a 10-line solver report per adjustment through a path its log level does not
+    # reach (`recon.log.quiet_colmap`): only with `recon -v`. Printing changes no result.
+    o.print_summary = colmap_verbose()
     pycolmap.bundle_adjustment(rec, o)
 
 
