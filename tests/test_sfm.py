@@ -507,7 +507,7 @@ def test_final_adjustment_off_leaves_the_model_as_the_mapper_made_it(tmp_path):
 @pytest.mark.parametrize("verbose", [False, True])
 def test_final_adjustment_prints_colmaps_solver_report_only_when_verbose(tmp_path, capfd, monkeypatch, verbose):
     """COLMAP writes a 10-line solver report per adjustment to stderr past its own log level; a
-    run shows it only under `recon -v` (`recon.log.colmap_verbose`), with the same result."""
+    run shows it only under `recon -v` (`recon.log.colmap_verbose`)."""
     import recon.core.sfm as sfm
 
     db = tmp_path / "database.db"
