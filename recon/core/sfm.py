@@ -60,7 +60,7 @@ Why these options (COLMAP's defaults assume many images with small baselines):
   rendered scenes) the fallback ran only in one mapping, sacre_coeur under `--simulate needed`
   with seed 0, where a model started from a weak triplet had already lost its points: it
   registered four more images that way and one structure-less RANSAC took 7.7 s, the failed
-  mapping 8-9.5 s against 0.35 s without it (retried either way, 10 of 10 with seed 1;
+  mapping 8.6-15.3 s against 0.3-0.7 s without it (retried either way, 10 of 10 with seed 1;
   docs/decisions.md, "Structure-less registration off"). `sfm.structure_less_fallback` turns it on.
 * `random_seed`: seeds every RANSAC in the mapper; bundle adjustment with several threads can
   still differ in the last digits (Ceres sums in thread order), so results are reproducible
