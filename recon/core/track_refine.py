@@ -134,7 +134,7 @@ def refine_tracks(merged: MergedTracks, images: Mapping[str, NDArray[np.uint8]],
         pts_c_all = work[name_c][m[:, col_c]]
         pts_p_all = work[name_p][m[:, col_p]]
         rows = row[sel[e]]
-        A = local_affines_at(pts_c_all, pts_p_all, rows, cfg.neighbours)
+        A = local_affines_at(pts_c_all, pts_p_all, rows, cfg.neighbours, cfg.robust_rounds)
         new, moved = refine_points0(images[name_c], images[name_p], pts_c_all[rows], pts_p_all[rows], A, cfg)
         return name_c, m[rows, col_c], np.asarray(new, np.float64), moved
 
