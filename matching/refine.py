@@ -7,7 +7,9 @@ every match where both patches are seen near-frontally:
 
 1. the local affine `A` (image 0 -> image 1 around the match) comes from the pair's homography
    (its Jacobian) when one was fitted, else from an affine fitted to the match's nearest
-   neighbouring matches (piecewise-planar scenes, fundamental-matrix pairs);
+   neighbouring matches (piecewise-planar scenes, fundamental-matrix pairs), refitted without
+   the neighbours it does not explain (`local_affines_at`: a wrong neighbour tilts a plain fit,
+   and under a wrong affine the patches do not correlate);
 2. both images are warped into a common frame `F` in which *neither* is downsampled: with
    `A = U diag(s1, s2) V^T`, image 0 maps to F by `diag(a1, a2) V^T` and image 1 by
    `diag(a1/s1, a2/s2) U^T` with `a_i = max(1, s_i)`, so no aliasing whichever side is larger;

@@ -241,6 +241,12 @@ class TracksConfig:
     by patch alignment under the local affine of the pair joining them
     (`recon.core.track_refine`; only with `consistent`). False keeps the merged positions."""
 
+    refine_robust_rounds: int = 2
+    """Trimmed refits of the local affine under which each observation is aligned to its parent
+    (`matching.refine.local_affines_at`); 0 = the plain least-squares fit used before 2026-12-03
+    (sacre_coeur 0.287 -> 0.256 px with 2 on the same matches, docs/decisions.md "Robust local
+    affines")."""
+
     def __post_init__(self) -> None:
         import math
 
@@ -251,6 +257,9 @@ class TracksConfig:
         if not (isinstance(self.trust_px, (int, float)) and not isinstance(self.trust_px, bool) and self.trust_px > 0):
             raise UserError(f"tracks.trust_px {self.trust_px}: must be > 0")
         self.trust_px = float(self.trust_px)
+        v = self.refine_robust_rounds
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise UserError(f"tracks.refine_robust_rounds {v!r}: an integer >= 0")
 
 
 @dataclass

@@ -93,3 +93,34 @@ def test_working_resolution_round_trip_and_scaled_images():
         e_cb = np.linalg.norm(_project(Hs[1] @ np.linalg.inv(Hs[2]), w["c"]) - w["b"], axis=1)
         return float(np.median(np.r_[e_ab, e_cb]))
     assert err(refined) < 0.3 * err(dict(zip(names, noisy)))
+
+
+def test_robust_affines_keep_wrong_neighbours_from_spoiling_the_alignment():
+    """A quarter of the tracks carry a wrong observation (4-8 px off in one image, as a wrong match
+    does): with the plain local-affine fit those neighbours tilt the affine of the good tracks
+    around them; with the trimmed refits (`RefineConfig.robust_rounds`, the default) the good
+    tracks come into closer agreement."""
+    from matching.refine import RefineConfig
+
+    imgs, Hs = _three_views()
+    rng = np.random.default_rng(2)
+    g = np.stack(np.meshgrid(np.linspace(230, 410, 16), np.linspace(170, 310, 12)), -1).reshape(-1, 2)
+    true = [_project(H, g) for H in Hs]
+    noisy = [(t + rng.normal(0, 0.5, t.shape)).astype(np.float32) for t in true]
+    wrong = rng.random(len(g)) < 0.25
+    offset = rng.uniform(4, 8, wrong.sum())[:, None] * np.stack([np.cos(a := rng.uniform(0, 6.3, wrong.sum())), np.sin(a)], 1)
+    noisy[1][wrong] += offset.astype(np.float32)
+    names = ["a", "b", "c"]
+    ident = np.stack([np.arange(len(g))] * 2, 1).astype(np.uint32)
+    merged = MergedTracks({n: k for n, k in zip(names, noisy)}, [ident, ident.copy(), ident.copy()],
+                          [("a", "b"), ("b", "c"), ("a", "c")])
+    images = dict(zip(names, imgs))
+    good = ~wrong
+    err = {}
+    for rounds in (0, 2):
+        refined, _ = refine_tracks(merged, images, {n: (1.0, 1.0) for n in names}, RefineConfig(robust_rounds=rounds))
+        e = [np.linalg.norm(_project(Hs[j] @ np.linalg.inv(Hs[i]), refined[names[i]][good].astype(np.float64))
+                            - refined[names[j]][good], axis=1) for i in range(3) for j in range(3) if i != j]
+        err[rounds] = float(np.median(np.concatenate(e)))
+    # measured: median disagreement of the good tracks 0.210 px with the plain fit, 0.179 with the trimmed one
+    assert err[2] < 0.9 * err[0], err

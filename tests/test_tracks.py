@@ -322,6 +322,10 @@ def test_tracks_config_checks_trust_px():
     for bad in (0, -1.0, True):
         with pytest.raises(UserError, match="trust_px"):
             TracksConfig(trust_px=bad)
+    assert TracksConfig().refine_robust_rounds == 2 and TracksConfig(refine_robust_rounds=0).refine_robust_rounds == 0
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(UserError, match="refine_robust_rounds"):
+            TracksConfig(refine_robust_rounds=bad)
 
 
 def test_distinct_correspondences_count_a_repeated_pair_of_positions_once():

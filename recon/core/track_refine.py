@@ -10,8 +10,8 @@ observation, and every other observation is moved so that its patch agrees with 
 through the match graph: a breadth-first tree from the anchor, each node aligned to its already
 aligned parent over the pair that matched them (the same least-squares patch alignment as the
 matcher's, `matching.refine.refine_points0`: both patches warped into a common frame by the
-pair's local affine, fitted to the pair's nearest matches around the point, NCC peak refined to
-sub-pixel). This is the keypoint adjustment of "Pixel-Perfect Structure-from-Motion" (Lindenberger
+pair's local affine, fitted robustly to the pair's nearest matches around the point, NCC peak
+refined to sub-pixel). This is the keypoint adjustment of "Pixel-Perfect Structure-from-Motion" (Lindenberger
 et al. 2021) with image patches in place of learned feature maps and a tree instead of a joint
 optimisation.
 

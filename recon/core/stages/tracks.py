@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from matching.refine import RefineConfig
 from recon.core.context import Run
 from recon.core.sfm import threshold_scale
 from recon.core.track_refine import refine_tracks
@@ -54,8 +55,9 @@ class Tracks:
         if run.cfg.tracks.consistent and run.cfg.tracks.refine and data.store is not None:
             images = {im.name: data.store.image(im.name) for im in scene.images if im.name in merged.keypoints}
             scales = {im.name: im.scale_xy for im in scene.images}
-            keypoints, refine_stats = refine_tracks(merged, images, scales, workers=max(1, run.cfg.num_workers),
-                                                    progress=_bar(run, "refine"))
+            keypoints, refine_stats = refine_tracks(merged, images, scales,
+                                                    RefineConfig(robust_rounds=run.cfg.tracks.refine_robust_rounds),
+                                                    workers=max(1, run.cfg.num_workers), progress=_bar(run, "refine"))
             merged = dataclasses.replace(merged, keypoints=keypoints)
         data.merged = merged
         data.keypoints = {n: merged.keypoints.get(n, np.zeros((0, 2), np.float32)) for n in scene.names}
