@@ -35,7 +35,8 @@ TRIM_MEDIANS = 2.5
 """Robust local affines: a neighbour is kept when its residual is within this many times the
 median residual of the fit (`local_affines_at`)."""
 TRIM_FLOOR_PX = 0.5
-"""... and always when within this many px of image 1 (detection noise is a few tenths of a px)."""
+"""... and always when its residual is within this many px of image 1 (detection noise is a few
+tenths of a px, so a tight fit does not trim good neighbours)."""
 
 
 @dataclass(frozen=True)
