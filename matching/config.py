@@ -149,7 +149,10 @@ class MatcherConfig:
         (fountain 0.243° -> 0.240°, castle 0.449° -> 0.458°; smaller at 52° on all three renders).
         It was off before the consistent-tracks check and the centred SIFT keypoints, when it
         raised fountain's reprojection error (docs/decisions.md, "Patch refinement in `recon
-        run`"); `--set matcher.refine.enabled=false` turns it off.
+        run`"); `--set matcher.refine.enabled=false` turns it off. Without the pair matcher's
+        resolution-matched patches (`RefineConfig.match_blur`): in scenes they measured flat
+        (fountain_P11 0.226 -> 0.227 px and 0.2333° -> 0.2341°, sacre_coeur 0.251 -> 0.244 px,
+        sceaux_castle 0.454 -> 0.456 px; docs/decisions.md, "Resolution-matched patches").
 
         The coarse search scores the full grid too (`CoarseConfig.search`): the coarse-to-fine
         search was measured on planar pairs only, and a scene pair's second surface may peak

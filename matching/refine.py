@@ -67,7 +67,9 @@ class RefineConfig:
     """Blur the sharper of the two patches in F to the other's resolution before correlating.
     In F the side magnified more (the coarser image, or the compressed axis of a tilted view) is
     smoother by its magnification; correlating it with the other side's sharp patch lowers the
-    NCC peak and biases it towards the sharp side's fine texture (`_resolution_blur`)."""
+    NCC peak and biases it towards the sharp side's fine texture (`_resolution_blur`). On in
+    the pair matcher's default (`MatcherConfig.refine`), off in `recon run`'s matcher and track
+    refinement, where it measured flat (docs/decisions.md, "Resolution-matched patches")."""
     native_blur_px: float = 0.5
     """Blur of an original image in its own pixels (SIFT's assumption, 0.5 px), the unit of
     `match_blur`'s added blur."""

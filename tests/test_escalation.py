@@ -46,7 +46,7 @@ def _correct(res, H: np.ndarray, thresh_px: float = 3**0.5) -> tuple[int, float]
 def test_evd_shop_is_solved_by_escalation(shared_data):
     """EVD shop: the fast path does not reach `min_inliers` verified matches; escalation (the
     `pairs` level, since both images are simulated) solves the pair (benchmarks/results/pairs.txt:
-    534 of 540 correct)."""
+    533 of 544 correct)."""
     e = shared_data / "evd"
     res = _match(e / "1" / "shop.png", e / "2" / "shop.png", workers=2)
     assert res.escalation == "pairs", "the fast path alone should not have reached min_inliers on shop"

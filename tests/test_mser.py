@@ -93,7 +93,7 @@ def test_mser_level_solves_evd_dum(shared_data):
     """EVD dum: the levels below `mser` (topk, swap, pairs, steep) stop short of
     `escalation.min_inliers` verified matches (so escalation reaches `mser`), and the level's
     regions solve it: before it, only the costlier `two-sided` level found 22 correct at 66.7 %
-    (docs/decisions.md, "The `mser` level"; benchmarks/results/pairs.txt: 84 of 85 now)."""
+    (docs/decisions.md, "The `mser` level"; benchmarks/results/pairs.txt: 89 of 92 now)."""
     e = shared_data / "evd"
     store = FeatureStore()
     store.add_image("a", load_gray(e / "1" / "dum.png"))
