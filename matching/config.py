@@ -96,6 +96,14 @@ class MatcherConfig:
     guided_epipolar_min_ratio: float = 0.35
     """...and at least this fraction of the first round's matches: around a wrong F the band
     collects chance matches consistent with it (docs/decisions.md)."""
+    guided_epipolar_polish: bool = False
+    """Polish the round's F (`matching_utils.polish_fundamental`: eight-point refits to the
+    matches it explains, while they grow) before drawing the band: OpenCV's RANSAC returns a
+    seven-point sample's F, whose lines miss true matches by more than the 1 px band. Measured on
+    the difficulty curve (render 0): verified inliers per pair 892 -> 939 at 13° and 812 -> 862 at
+    19.5° (stock `high` 980 / 849), rotation error 0.002° -> 0.005° and 0.004° -> 0.004°. Off until
+    the scene benchmarks are rerun with it (docs/decisions.md, "Polished F in the epipolar
+    round"); `recon run --set matcher.guided_epipolar_polish=true` turns it on."""
     verify: Literal["auto", "homography", "fundamental"] = "auto"
     """The model that counts verified matches for the escalation decision ("auto" = homography
     with `final_homography`, else fundamental matrix)."""

@@ -27,7 +27,7 @@ from .fine import (
     guided_match,
     target_features,
 )
-from .matching_utils import ransac_homography, unique_train
+from .matching_utils import polish_fundamental, ransac_homography, unique_train
 from .types import PairResult, ViewParams
 from .viewfeatures import view_features
 from .views import capped_view
@@ -116,6 +116,8 @@ def trusted_fundamental(ctx: MatchContext, fm: FineMatches) -> NDArray[np.float6
     inl = mask.ravel().astype(bool)
     if inl.sum() < cfg.guided_epipolar_min_inliers or inl.sum() < cfg.guided_epipolar_min_ratio * len(inl):
         return None
+    if cfg.guided_epipolar_polish:
+        F, _ = polish_fundamental(p_ref, p_t, F, cfg.guided_epipolar_px)
     return cast(NDArray[np.float64], F)
 
 

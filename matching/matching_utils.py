@@ -175,6 +175,43 @@ def polish_homography(pts0: NDArray, pts1: NDArray, H_1_from_0: NDArray[np.float
     return H, mask
 
 
+def polish_fundamental(pts0: NDArray, pts1: NDArray, F_1_from_0: NDArray[np.float64], thresh_px: float,
+                       rounds: int = 3) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """`F_1_from_0` re-fitted by the normalised eight-point method (rank 2 enforced) to the
+    matches within `thresh_px` of their epipolar lines in both images (OpenCV's RANSAC error),
+    repeated while that set grows, with the final inlier mask (a local optimisation step).
+
+    OpenCV's classic `FM_RANSAC` returns a seven-point sample's model as it is: at a 1 px
+    threshold and 0.4 px detection noise it explains 395 of 500 true matches of a synthetic
+    pair where the polished model explains 453 (`tests/test_polish.py`). A round
+    that does not add inliers ends the loop; deterministic (no sampling).
+    """
+    p0 = np.asarray(pts0, np.float64).reshape(-1, 2)
+    p1 = np.asarray(pts1, np.float64).reshape(-1, 2)
+    h0, h1 = np.c_[p0, np.ones(len(p0))], np.c_[p1, np.ones(len(p1))]
+
+    def explained(F: NDArray[np.float64]) -> NDArray[np.bool_]:
+        l1, l0 = h0 @ F.T, h1 @ F  # epipolar lines in image 1 of image-0 points, and back
+        num = np.abs((l1 * h1).sum(axis=1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.maximum(num / np.hypot(l1[:, 0], l1[:, 1]), num / np.hypot(l0[:, 0], l0[:, 1]))
+        return np.isfinite(d) & (d <= thresh_px)
+
+    F = np.asarray(F_1_from_0, np.float64)
+    mask = explained(F)
+    for _ in range(rounds):
+        if mask.sum() < 8:
+            break
+        F_new, _ = cv2.findFundamentalMat(p0[mask].astype(np.float32), p1[mask].astype(np.float32), cv2.FM_8POINT)
+        if F_new is None or F_new.shape != (3, 3) or not np.isfinite(F_new).all():
+            break
+        mask_new = explained(F_new)
+        if mask_new.sum() <= mask.sum():
+            break
+        F, mask = np.asarray(F_new, np.float64), mask_new
+    return F, mask
+
+
 def ransac_homography(pts0: NDArray, pts1: NDArray, thresh_px: float, seed: int = 0,
                       max_iters: int = 10000, confidence: float = 0.999,
                       ) -> tuple[NDArray[np.float64] | None, NDArray[np.bool_]]:

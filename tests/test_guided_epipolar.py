@@ -138,3 +138,36 @@ def test_guided_round_skips_pairs_without_trustworthy_geometry(shared_data):
     assert counts[True][good] > 1.2 * counts[False][good], counts
     assert counts[False][weak] >= 15, counts  # the first round does return matches...
     assert counts[True][weak] == counts[False][weak], counts  # ...but the gate keeps the band off
+
+
+@pytest.mark.slow
+def test_polished_fundamental_gains_gt_consistent_matches(tmp_path):
+    """`guided_epipolar_polish`: on a rendered neighbouring pair (GT poses) the round's band,
+    drawn from the polished F instead of RANSAC's seven-point F, keeps and adds more matches that
+    agree with the ground-truth epipolar geometry, and a larger share of its matches does
+    (measured: 517 of 578 within 1 px of the true epipolar lines -> 615 of 631)."""
+    from matching.io import load_gray
+    from matching.store import FeatureStore
+    from recon.core.pipeline import make_matcher
+    from recon.eval.gt import find_gt
+    from scenes.render import render_scene
+
+    scene = tmp_path / "fw"
+    render_scene(scene, "facade-wide", seed=0, image_size=(640, 480))
+    gt = find_gt(scene)
+    a, b = "view_00.png", "view_01.png"
+    F = _F_from(gt[a].cam_from_world, gt[b].cam_from_world, gt[a].K, gt[b].K)
+    store = FeatureStore()
+    for n in (a, b):
+        store.add_image(n, load_gray(scene / "images" / n))
+    out = {}
+    for polish in (False, True):
+        m = make_matcher("extra-affine")
+        m.cfg = dataclasses.replace(m.cfg, guided_epipolar_polish=polish)
+        r = m.match(store, a, b)
+        p0, p1 = r.matched_points(inliers_only=False)
+        err = epipolar_pair_distance(F, p0, p1)
+        out[polish] = (len(err), int((err < 1.0).sum()))
+    (n0, good0), (n1, good1) = out[False], out[True]
+    assert good1 > 1.1 * good0, out
+    assert good1 / n1 > good0 / n0 + 0.03, out

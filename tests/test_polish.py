@@ -1,11 +1,13 @@
-"""`matching_utils.polish_homography`: the local optimisation that follows RANSAC in the
-re-fit after patch refinement, on synthetic matches of a known homography."""
+"""The local optimisation after RANSAC (`matching_utils.polish_homography`, the pair matcher's
+re-fit after patch refinement; `polish_fundamental`, the F of the epipolar-guided round) on
+synthetic matches of a known homography or a known two-view geometry."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-from matching.matching_utils import polish_homography, ransac_homography
+from matching.matching_utils import polish_fundamental, polish_homography, ransac_homography
 from matching.metrics import project
 
 H_TRUE = np.array([[0.9, 0.12, 30.0], [-0.08, 1.05, -12.0], [2e-4, -1e-4, 1.0]])
@@ -60,3 +62,39 @@ def test_polish_keeps_a_model_it_cannot_improve():
     H_far = _shifted(H_TRUE, 40.0)
     H, mask = polish_homography(pts0, pts1, H_far, 1.5)
     assert np.array_equal(H, H_far) and mask.sum() < 4
+
+
+def _two_view(noise_px: float = 0.4, seed: int = 0):
+    """600 points 4-8 units in front of an 800x600 pinhole camera (f = 800 px) and of a second one
+    moved sideways and turned by 17 degrees, with Gaussian noise in both images; the last 100
+    matches replaced by random ones. Returns (pts0, pts1, is_good)."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
+    X = np.c_[rng.uniform(-2, 2, (600, 2)), rng.uniform(4, 8, 600)]
+    R, _ = cv2.Rodrigues(np.array([0.05, 0.3, 0.02]))
+    t = np.array([-1.0, 0.1, 0.2])
+
+    def image(P):
+        q = P @ K.T
+        return q[:, :2] / q[:, 2:]
+
+    pts0 = image(X) + rng.normal(0, noise_px, (600, 2))
+    pts1 = image(X @ R.T + t) + rng.normal(0, noise_px, (600, 2))
+    pts1[500:] = rng.uniform([0, 0], [800, 600], (100, 2))
+    return pts0, pts1, np.arange(600) < 500
+
+
+def test_polished_fundamental_explains_more_true_matches_than_ransac():
+    """OpenCV's FM_RANSAC at a 1 px threshold returns a seven-point sample's F; the polished F
+    explains more of the true matches and still none of the random ones (measured: 395 -> 453 of
+    500 at 0.4 px noise, the same for seeds 0-2)."""
+    pts0, pts1, good = _two_view()
+    for seed in range(3):
+        cv2.setRNGSeed(seed)
+        F, mask = cv2.findFundamentalMat(pts0.astype(np.float32), pts1.astype(np.float32), cv2.FM_RANSAC,
+                                         1.0, 0.999, 10000)
+        F_p, mask_p = polish_fundamental(pts0, pts1, F, 1.0)
+        ransac_good = int(mask.ravel().astype(bool)[good].sum())
+        assert mask_p[good].sum() > 1.08 * ransac_good, (ransac_good, mask_p[good].sum())
+        assert mask_p[~good].sum() <= 2
+        assert np.linalg.matrix_rank(F_p, tol=1e-9 * np.abs(F_p).max()) == 2
