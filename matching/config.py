@@ -101,9 +101,10 @@ class MatcherConfig:
     matches it explains, while they grow) before drawing the band: OpenCV's RANSAC returns a
     seven-point sample's F, whose lines miss true matches by more than the 1 px band. Measured on
     the difficulty curve (render 0): verified inliers per pair 892 -> 939 at 13° and 812 -> 862 at
-    19.5° (stock `high` 980 / 849), rotation error 0.002° -> 0.005° and 0.004° -> 0.004°. Off until
-    the scene benchmarks are rerun with it (docs/decisions.md, "Polished F in the epipolar
-    round"); `recon run --set matcher.guided_epipolar_polish=true` turns it on."""
+    19.5° (stock `high` 980 / 849), rotation error 0.002° -> 0.005° and 0.004° -> 0.004°; but on
+    the real scenes a slightly worse model (fountain_P11 0.226 -> 0.234 px, 0.2333° -> 0.2363°
+    against stock's 0.2340°), so off (docs/decisions.md, "Polished F in the epipolar round");
+    `recon run --set matcher.guided_epipolar_polish=true` turns it on."""
     verify: Literal["auto", "homography", "fundamental"] = "auto"
     """The model that counts verified matches for the escalation decision ("auto" = homography
     with `final_homography`, else fundamental matrix)."""
