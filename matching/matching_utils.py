@@ -159,20 +159,13 @@ def polish_homography(pts0: NDArray, pts1: NDArray, H_1_from_0: NDArray[np.float
             e = np.sqrt((d * d).sum(axis=1))
         return np.isfinite(e) & (e <= thresh_px)
 
-    H = np.asarray(H_1_from_0, np.float64)
-    mask = explained(H)
-    for _ in range(rounds):
-        if mask.sum() < 4:
-            break
-        H_new, _ = cv2.findHomography(p0[mask], p1[mask], 0)
-        if H_new is None or not np.isfinite(H_new).all() or abs(H_new[2, 2]) < 1e-12:
-            break
-        H_new = H_new / H_new[2, 2]
-        mask_new = explained(H_new)
-        if mask_new.sum() <= mask.sum():
-            break
-        H, mask = H_new, mask_new
-    return H, mask
+    def fit(mask: NDArray[np.bool_]) -> NDArray[np.float64] | None:
+        H, _ = cv2.findHomography(p0[mask], p1[mask], 0)
+        if H is None or not np.isfinite(H).all() or abs(H[2, 2]) < 1e-12:
+            return None
+        return np.asarray(H / H[2, 2], np.float64)
+
+    return _grow_consensus(np.asarray(H_1_from_0, np.float64), fit, explained, 4, rounds)
 
 
 def polish_fundamental(pts0: NDArray, pts1: NDArray, F_1_from_0: NDArray[np.float64], thresh_px: float,
@@ -197,19 +190,33 @@ def polish_fundamental(pts0: NDArray, pts1: NDArray, F_1_from_0: NDArray[np.floa
             d = np.maximum(num / np.hypot(l1[:, 0], l1[:, 1]), num / np.hypot(l0[:, 0], l0[:, 1]))
         return np.isfinite(d) & (d <= thresh_px)
 
-    F = np.asarray(F_1_from_0, np.float64)
-    mask = explained(F)
+    def fit(mask: NDArray[np.bool_]) -> NDArray[np.float64] | None:
+        F, _ = cv2.findFundamentalMat(p0[mask].astype(np.float32), p1[mask].astype(np.float32), cv2.FM_8POINT)
+        if F is None or F.shape != (3, 3) or not np.isfinite(F).all():
+            return None
+        return np.asarray(F, np.float64)
+
+    return _grow_consensus(np.asarray(F_1_from_0, np.float64), fit, explained, 8, rounds)
+
+
+def _grow_consensus(model: NDArray[np.float64], fit: Callable[[NDArray[np.bool_]], NDArray[np.float64] | None],
+                    explained: Callable[[NDArray[np.float64]], NDArray[np.bool_]], min_inliers: int,
+                    rounds: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The polish loop shared by `polish_homography` and `polish_fundamental`: re-`fit` the model
+    to the matches it `explained`, at most `rounds` times, while that set grows (and holds at least
+    `min_inliers`); returns the last model that grew it and its inlier mask."""
+    mask = explained(model)
     for _ in range(rounds):
-        if mask.sum() < 8:
+        if mask.sum() < min_inliers:
             break
-        F_new, _ = cv2.findFundamentalMat(p0[mask].astype(np.float32), p1[mask].astype(np.float32), cv2.FM_8POINT)
-        if F_new is None or F_new.shape != (3, 3) or not np.isfinite(F_new).all():
+        new = fit(mask)
+        if new is None:
             break
-        mask_new = explained(F_new)
+        mask_new = explained(new)
         if mask_new.sum() <= mask.sum():
             break
-        F, mask = np.asarray(F_new, np.float64), mask_new
-    return F, mask
+        model, mask = new, mask_new
+    return model, mask
 
 
 def ransac_homography(pts0: NDArray, pts1: NDArray, thresh_px: float, seed: int = 0,

@@ -22,6 +22,23 @@ def _F_from(Pa, Pb, Ka, Kb):
     return np.linalg.inv(Kb).T @ _skew(t) @ R @ np.linalg.inv(Ka)
 
 
+def _rendered_pair(tmp_path, a: str, b: str):
+    """A feature store holding views `a` and `b` of the rendered facade-wide scene (seed 0,
+    640x480) and their ground-truth F (image a -> lines in image b)."""
+    from matching.io import load_gray
+    from matching.store import FeatureStore
+    from recon.eval.gt import find_gt
+    from scenes.render import render_scene
+
+    scene = tmp_path / "fw"
+    render_scene(scene, "facade-wide", seed=0, image_size=(640, 480))
+    gt = find_gt(scene)
+    store = FeatureStore()
+    for n in (a, b):
+        store.add_image(n, load_gray(scene / "images" / n))
+    return store, _F_from(gt[a].cam_from_world, gt[b].cam_from_world, gt[a].K, gt[b].K)
+
+
 @pytest.mark.parametrize("case", ["general", "parallel", "epipole_inside", "epipole_far"])
 def test_band_candidates_equal_the_brute_force_set(case):
     """The binary-search band finds exactly the pairs within the radius (float64 brute force),
@@ -87,20 +104,9 @@ def test_band_brings_back_matches_that_a_decoy_hides():
 def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
     """On a rendered wide pair (GT poses), the guided round adds matches that agree with the
     ground-truth epipolar geometry, at no loss of the consistent fraction."""
-    from matching.io import load_gray
-    from matching.store import FeatureStore
     from recon.core.pipeline import make_matcher
-    from recon.eval.gt import find_gt
-    from scenes.render import render_scene
 
-    scene = tmp_path / "fw"
-    render_scene(scene, "facade-wide", seed=0, image_size=(640, 480))
-    gt = find_gt(scene)
-    a, b = "view_00.png", "view_03.png"  # 112 deg apart in azimuth
-    F = _F_from(gt[a].cam_from_world, gt[b].cam_from_world, gt[a].K, gt[b].K)
-    store = FeatureStore()
-    for n in (a, b):
-        store.add_image(n, load_gray(scene / "images" / n))
+    store, F = _rendered_pair(tmp_path, a := "view_00.png", b := "view_03.png")  # 112 deg apart in azimuth
     out = {}
     for guided in (False, True):
         m = make_matcher("extra-affine")
@@ -146,20 +152,9 @@ def test_polished_fundamental_gains_gt_consistent_matches(tmp_path):
     drawn from the polished F instead of RANSAC's seven-point F, keeps and adds more matches that
     agree with the ground-truth epipolar geometry, and a larger share of its matches does
     (measured: 517 of 578 within 1 px of the true epipolar lines -> 615 of 631)."""
-    from matching.io import load_gray
-    from matching.store import FeatureStore
     from recon.core.pipeline import make_matcher
-    from recon.eval.gt import find_gt
-    from scenes.render import render_scene
 
-    scene = tmp_path / "fw"
-    render_scene(scene, "facade-wide", seed=0, image_size=(640, 480))
-    gt = find_gt(scene)
-    a, b = "view_00.png", "view_01.png"
-    F = _F_from(gt[a].cam_from_world, gt[b].cam_from_world, gt[a].K, gt[b].K)
-    store = FeatureStore()
-    for n in (a, b):
-        store.add_image(n, load_gray(scene / "images" / n))
+    store, F = _rendered_pair(tmp_path, a := "view_00.png", b := "view_01.png")
     out = {}
     for polish in (False, True):
         m = make_matcher("extra-affine")
