@@ -39,6 +39,22 @@ def _rendered_pair(tmp_path, a: str, b: str):
     return store, _F_from(gt[a].cam_from_world, gt[b].cam_from_world, gt[a].K, gt[b].K)
 
 
+def _gt_consistent_counts(tmp_path, a: str, b: str, option: str, within_px: float) -> dict[bool, tuple[int, int]]:
+    """`recon run`'s matcher on the rendered pair (`_rendered_pair`) with the boolean matcher
+    `option` off and on: {value: (matches, matches within `within_px` of the true epipolar line)}."""
+    from recon.core.pipeline import make_matcher
+
+    store, F = _rendered_pair(tmp_path, a, b)
+    out = {}
+    for value in (False, True):
+        m = make_matcher("extra-affine")
+        m.cfg = dataclasses.replace(m.cfg, **{option: value})
+        p0, p1 = m.match(store, a, b).matched_points(inliers_only=False)
+        err = epipolar_pair_distance(F, p0, p1)
+        out[value] = (len(err), int((err < within_px).sum()))
+    return out
+
+
 @pytest.mark.parametrize("case", ["general", "parallel", "epipole_inside", "epipole_far"])
 def test_band_candidates_equal_the_brute_force_set(case):
     """The binary-search band finds exactly the pairs within the radius (float64 brute force),
@@ -104,17 +120,7 @@ def test_band_brings_back_matches_that_a_decoy_hides():
 def test_multiview_matcher_gains_gt_consistent_matches(tmp_path):
     """On a rendered wide pair (GT poses), the guided round adds matches that agree with the
     ground-truth epipolar geometry, at no loss of the consistent fraction."""
-    from recon.core.pipeline import make_matcher
-
-    store, F = _rendered_pair(tmp_path, a := "view_00.png", b := "view_03.png")  # 112 deg apart in azimuth
-    out = {}
-    for guided in (False, True):
-        m = make_matcher("extra-affine")
-        m.cfg = dataclasses.replace(m.cfg, guided_epipolar=guided)
-        r = m.match(store, a, b)
-        p0, p1 = r.matched_points(inliers_only=False)
-        err = epipolar_pair_distance(F, p0, p1)
-        out[guided] = (len(err), int((err < 2.0).sum()))
+    out = _gt_consistent_counts(tmp_path, "view_00.png", "view_03.png", "guided_epipolar", 2.0)  # 112 deg apart
     (n0, good0), (n1, good1) = out[False], out[True]
     assert n0 > 30, out
     assert good1 >= 1.3 * good0, out
@@ -152,17 +158,7 @@ def test_polished_fundamental_gains_gt_consistent_matches(tmp_path):
     drawn from the polished F instead of RANSAC's seven-point F, keeps and adds more matches that
     agree with the ground-truth epipolar geometry, and a larger share of its matches does
     (measured: 517 of 578 within 1 px of the true epipolar lines -> 615 of 631)."""
-    from recon.core.pipeline import make_matcher
-
-    store, F = _rendered_pair(tmp_path, a := "view_00.png", b := "view_01.png")
-    out = {}
-    for polish in (False, True):
-        m = make_matcher("extra-affine")
-        m.cfg = dataclasses.replace(m.cfg, guided_epipolar_polish=polish)
-        r = m.match(store, a, b)
-        p0, p1 = r.matched_points(inliers_only=False)
-        err = epipolar_pair_distance(F, p0, p1)
-        out[polish] = (len(err), int((err < 1.0).sum()))
+    out = _gt_consistent_counts(tmp_path, "view_00.png", "view_01.png", "guided_epipolar_polish", 1.0)
     (n0, good0), (n1, good1) = out[False], out[True]
     assert good1 > 1.1 * good0, out
     assert good1 / n1 > good0 / n0 + 0.03, out
