@@ -33,7 +33,7 @@ from matching.memory import RUN_INTERVAL_S, PeakRss
 from recon.config import build_run_config
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import load_gt, method_result, run_stock_preset
-from recon.eval.difficulty import DEFAULT_MAX_AZIMUTH, _scene, step_deg
+from recon.eval.difficulty import DEFAULT_MAX_AZIMUTH, _scene, correct_correspondences, correct_per_pair, step_deg
 
 
 def run_variant(scene: Path, out: Path, gt, settings: list[str], seed: int) -> dict[str, Any]:
@@ -62,13 +62,16 @@ def parse_variants(specs: list[str]) -> list[tuple[str, list[str]]]:
     return variants
 
 
-def row_of(name: str, m: dict[str, Any], n: int, step: float, source: str) -> dict[str, Any]:
+def row_of(name: str, m: dict[str, Any], n: int, step: float, source: str, scene: Path) -> dict[str, Any]:
+    """One table row; `correct_per_pair` from the run's database and the scene's ground truth."""
+    correct = correct_correspondences(Path(m.get("out") or ""), scene)
     return {"views": n, "step_deg": round(step, 2), "method": name, "status": m.get("status"),
             "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
             "rot_err_deg": m.get("rel_rot_err_deg_median"), "auc_5": m.get("auc_5"),
             "verified_pairs": m.get("verified_pairs", 0), "pairs": m.get("num_pairs", 0),
             "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0),
-            "distinct_per_pair": m.get("distinct_inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
+            "distinct_per_pair": m.get("distinct_inliers_per_pair_mean", 0.0),
+            "correct_per_pair": correct_per_pair(m.get("pairs") or [], correct), "points": m.get("num_points3D", 0),
             "reproj_px": m.get("mean_reprojection_error"), "seconds": m.get("seconds_total"),
             "match_seconds": (m.get("stages") or {}).get("match"),
             "source": source}
@@ -76,13 +79,15 @@ def row_of(name: str, m: dict[str, Any], n: int, step: float, source: str) -> di
 
 def table(rows: list[dict[str, Any]]) -> str:
     lines = [f"{'views':>5} {'step':>6} {'method':<16} {'reg':>6} {'rot.err':>8} {'inl/pair':>9} {'distinct':>9} "
-             f"{'s':>7} {'match s':>7}"]
+             f"{'correct':>8} {'s':>7} {'match s':>7}"]
     for r in rows:
         rot = "-" if r["rot_err_deg"] is None else f"{r['rot_err_deg']:.3f}"
         sec = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
         msec = "-" if r["match_seconds"] is None else f"{r['match_seconds']:.1f}"
+        corr = "-" if r.get("correct_per_pair") is None else f"{r['correct_per_pair']:.1f}"
         lines.append(f"{r['views']:>5} {r['step_deg']:>6} {r['method']:<16} {r['registered']:>2}/{r['images']:<3} "
-                     f"{rot:>8} {r['inliers_per_pair']:>9.1f} {r.get('distinct_per_pair', 0.0):>9.1f} {sec:>7} {msec:>7}")
+                     f"{rot:>8} {r['inliers_per_pair']:>9.1f} {r.get('distinct_per_pair', 0.0):>9.1f} {corr:>8} "
+                     f"{sec:>7} {msec:>7}")
     return "\n".join(lines)
 
 
@@ -117,15 +122,15 @@ def main(argv: list[str] | None = None) -> int:
         for p in [p for p in args.stock_presets.split(",") if p]:  # "" = none
             key = f"stock-{p}"
             if stock is not None and key in stock:
-                rows.append(row_of(key, stock[key], n, step, str(args.stock_from)))
+                rows.append(row_of(key, stock[key], n, step, str(args.stock_from), scene))
             else:
                 m = run_stock_preset(scene, out / "runs" / preset / key, gt, p, 1600, "exhaustive", args.seed,
                                      strict=False)
-                rows.append(row_of(key, m, n, step, "this run"))
+                rows.append(row_of(key, m, n, step, "this run", scene))
         for label, settings in variants:
             d = out / "runs" / preset / f"ours-{label}"
             print(f"{preset}: ours {label} {settings}", file=sys.stderr)
-            rows.append(row_of(f"ours-{label}", run_variant(scene, d, gt, settings, args.seed), n, step, "this run"))
+            rows.append(row_of(f"ours-{label}", run_variant(scene, d, gt, settings, args.seed), n, step, "this run", scene))
             write_json_atomic(out / "variants.json", {"config": config, "rows": rows})
         print(table([r for r in rows if r["views"] == n]), flush=True)
     write_json_atomic(out / "variants.json", {"config": config, "rows": rows})

@@ -243,7 +243,7 @@ def difficulty_cmd(
 
     from recon.core.outdir import claim_output
     from recon.errors import UserError
-    from recon.eval.difficulty import difficulty_table, plot_difficulty, run_difficulty
+    from recon.eval.difficulty import baseline_table, difficulty_table, plot_difficulty, run_difficulty
 
     try:
         counts = [int(v) for v in views.split(",") if v.strip()]
@@ -256,7 +256,9 @@ def difficulty_cmd(
         data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]
                               recompute=recompute, workers=workers, progress=progress,
                               log=lambda m: err.print(f"recon: {m}", markup=False))
-    Console(width=None if sys.stdout.isatty() else 160).print(difficulty_table(data))
+    console = Console(width=None if sys.stdout.isatty() else 160)
+    console.print(difficulty_table(data))
+    console.print(baseline_table(data))
     js = Path(out) / "difficulty.json"
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,12 @@ the extreme viewing angles stay the same; then runs `recon.eval.compare.compare_
 `default` and `high`, and ours, same images and pairs) on each and collects, per step and method:
 registered images, median relative rotation and translation-direction errors against the
 rendered ground truth, AUC@5°, verified pairs, mean verified inliers per verified pair, and
-time. A scene that does not register fully still counts: its rotation error is over the pairs
+time; the mean number of those correspondences that are right (`correct_per_pair`: distinct
+verified correspondences within `CORRECT_PX` of the exact transfer through the rendered planes,
+`recon.eval.gt_planes`; COLMAP's count also holds matches that fit the epipolar geometry at the
+wrong place along a line); and these means split by the pair's azimuth separation
+(`by_baseline`: neighbours, two steps apart, ...), which says where two methods part
+(`baseline_table`). A scene that does not register fully still counts: its rotation error is over the pairs
 it did register (and `registered` says how many), AUC counts unregistered pairs as failures.
 
 Outputs (under OUT): `scenes/<preset>/` (rendered once, reused when the same seed and size are
@@ -21,15 +26,22 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from recon.config import DEFAULT_MAX_SIZE
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import OURS_KEY, compare_scene
+
+CORRECT_PX = math.sqrt(3.0)
+"""A verified correspondence is correct within this many px of the exact transfer (the pair
+benchmark's threshold, `matching.metrics.DEFAULT_TH`: the 3x3 neighbourhood of the true point)."""
 
 DEFAULT_VIEWS = (3, 4, 5, 7, 9, 13)
 DEFAULT_MAX_AZIMUTH = 78.0
@@ -63,9 +75,11 @@ def _scene(out: Path, preset: str, seed: int, image_size: tuple[int, int] | None
 
 
 def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, Any]]:
-    """One row per method of one `compare_scene` result."""
+    """One row per method of one `compare_scene` result (correct correspondences from each
+    method's database and the scene's ground truth, when both are still there)."""
     rows = []
     for name, m in res["methods"].items():
+        correct = correct_correspondences(Path(m.get("out") or ""), Path(res.get("scene") or ""))
         rows.append({
             "views": num_views, "step_deg": round(step, 2), "method": "ours" if name == OURS_KEY else name,
             "status": m.get("status"), "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
@@ -73,9 +87,82 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
             "auc_5": m.get("auc_5"), "verified_pairs": m.get("verified_pairs", 0), "pairs": m.get("num_pairs", 0),
             "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0),
             "distinct_per_pair": m.get("distinct_inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
+            "correct_per_pair": correct_per_pair(m.get("pairs") or [], correct),
             "seconds": m.get("seconds_total"),
+            "by_baseline": by_baseline(m.get("pairs") or [], step, correct),
         })
     return rows
+
+
+def correct_per_pair(pairs: Sequence[dict[str, Any]], correct: dict[tuple[str, str], int] | None) -> float | None:
+    """Mean correct correspondences (`correct_correspondences`) over the verified pairs of a run
+    report's pair rows; None without them."""
+    verified = [p for p in pairs if p.get("verified_inliers", 0) > 0]
+    if correct is None or not verified:
+        return None
+    return sum(correct.get(_key(p), 0) for p in verified) / len(verified)
+
+
+def _key(p: dict[str, Any]) -> tuple[str, str]:
+    a, b = p["image0"], p["image1"]
+    return (a, b) if a <= b else (b, a)
+
+
+def correct_correspondences(run_dir: Path, scene_dir: Path, max_px: float = CORRECT_PX) -> dict[tuple[str, str], int] | None:
+    """{(name0, name1) in name order: distinct verified correspondences within `max_px` of the exact
+    transfer} of the run's `database.db` (keypoints in full-resolution px, the rendered size), or
+    None without the database or the scene's `gt/` (a moved or trimmed benchmark folder)."""
+    import pycolmap
+
+    from recon.core.database import read_keypoints_opencv, read_verified
+    from recon.eval.gt import read_colmap_text
+    from recon.eval.gt_planes import correct_matches, rects_from_scene
+
+    db_path, meta_path = run_dir / "database.db", scene_dir / "gt" / "scene.json"
+    if not db_path.is_file() or not meta_path.is_file():
+        return None
+    rects = rects_from_scene(json.loads(meta_path.read_text(encoding="utf-8")))
+    cams = read_colmap_text(scene_dir / "gt")
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        names = {int(im.image_id): im.name for im in db.read_all_images()}
+    finally:
+        db.close()
+    kpts = {i: read_keypoints_opencv(db_path, i) for i in names}
+    out: dict[tuple[str, str], int] = {}
+    for (a, b), (n, _conf, m) in read_verified(db_path).items():
+        if n == 0 or names[a] not in cams or names[b] not in cams:
+            continue
+        pairs = np.unique(np.round(np.c_[kpts[a][m[:, 0]], kpts[b][m[:, 1]]], 2), axis=0)  # distinct positions
+        ok = correct_matches(rects, cams[names[a]], cams[names[b]], pairs[:, :2], pairs[:, 2:], max_px)
+        key = (names[a], names[b]) if names[a] <= names[b] else (names[b], names[a])
+        out[key] = int(ok.sum())
+    return out
+
+
+def by_baseline(pairs: Sequence[dict[str, Any]], step: float,
+                correct: dict[tuple[str, str], int] | None = None) -> list[dict[str, Any]]:
+    """Verified inliers per verified pair (COLMAP's raw count and the distinct one) grouped by
+    the pair's azimuth separation in degrees, narrowest first: `pairs` are a run report's pair
+    rows (`image0`, `image1`, `verified_inliers`, `distinct_inliers`); the sweep's views are
+    named in azimuth order `step` degrees apart (`scenes.presets.facade_sweep`), so a pair's
+    separation is its name-rank difference times `step`. Pairs without verified inliers are
+    counted in `pairs` only (as `verified_pairs` counts them out of the means). With `correct`
+    (`correct_correspondences`) each group also gets `correct_per_pair`."""
+    names = sorted({p[k] for p in pairs for k in ("image0", "image1")})
+    rank = {n: i for i, n in enumerate(names)}
+    groups: dict[int, list[dict[str, Any]]] = {}
+    for p in pairs:
+        groups.setdefault(abs(rank[p["image0"]] - rank[p["image1"]]), []).append(p)
+    out = []
+    for gap in sorted(groups):
+        verified = [p for p in groups[gap] if p.get("verified_inliers", 0) > 0]
+        n = len(verified)
+        out.append({"separation_deg": round(gap * step, 2), "pairs": len(groups[gap]), "verified_pairs": n,
+                    "inliers_per_pair": sum(p["verified_inliers"] for p in verified) / n if n else 0.0,
+                    "distinct_per_pair": sum(p.get("distinct_inliers", 0) for p in verified) / n if n else 0.0,
+                    "correct_per_pair": correct_per_pair(groups[gap], correct)})
+    return out
 
 
 def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_azimuth_deg: float = DEFAULT_MAX_AZIMUTH,
@@ -136,7 +223,7 @@ def difficulty_table(data: dict[str, Any]):
     for m in methods:
         t.add_column(f"{m}\nregistered", justify="right")
         t.add_column(f"{m}\nrot err ° med", justify="right")
-        t.add_column(f"{m}\ninliers/pair\n(distinct)", justify="right")
+        t.add_column(f"{m}\ninliers/pair\n(distinct, correct)", justify="right")
     for n in dict.fromkeys(r["views"] for r in rows):
         by = {r["method"]: r for r in rows if r["views"] == n}
         cells = [str(n), f"{next(iter(by.values()))['step_deg']:.1f}"]
@@ -149,9 +236,41 @@ def difficulty_table(data: dict[str, Any]):
             reg = f"{r['registered']}/{r['images']}"
             cells += [reg if full else f"[red]{reg}[/red]",
                       "-" if r["rot_err_deg"] is None else f"{r['rot_err_deg']:.2f}",
-                      f"{r['inliers_per_pair']:.0f} ({r.get('distinct_per_pair', 0.0):.0f})"]
+                      _counts(r)]
         t.add_row(*cells)
     return t
+
+
+def baseline_table(data: dict[str, Any], views: int | None = None):
+    """A rich table of one sweep (`views`, default the densest): verified inliers per verified
+    pair, raw (distinct), per azimuth separation and method (`by_baseline`)."""
+    from rich.table import Table
+
+    rows = data["rows"]
+    views = views if views is not None else max(r["views"] for r in rows)
+    by = {r["method"]: {b["separation_deg"]: b for b in r.get("by_baseline") or []}
+          for r in rows if r["views"] == views}
+    seps = sorted({s for b in by.values() for s in b})
+    t = Table(title=f"Verified inliers per pair by azimuth separation, {views} views: raw (distinct, correct)",
+              header_style="bold")
+    t.add_column("separation °", justify="right")
+    t.add_column("pairs", justify="right")
+    for m in by:
+        t.add_column(m, justify="right")
+    for sep in seps:
+        cells = [f"{sep:g}", str(max((b[sep]["pairs"] for b in by.values() if sep in b), default=0))]
+        for m in by:
+            b = by[m].get(sep)
+            cells.append("-" if b is None or not b["verified_pairs"] else _counts(b))
+        t.add_row(*cells)
+    return t
+
+
+def _counts(r: dict[str, Any]) -> str:
+    """"raw (distinct, correct)" verified inliers per pair (no correct count: "raw (distinct)")."""
+    c = r.get("correct_per_pair")
+    tail = "" if c is None else f", {c:.0f}"
+    return f"{r['inliers_per_pair']:.0f} ({r.get('distinct_per_pair', 0.0):.0f}{tail})"
 
 
 def plot_difficulty(data: dict[str, Any], path: str | Path) -> Path | None:
