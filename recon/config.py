@@ -230,6 +230,11 @@ class TracksConfig:
     """Drop the matches that would put two keypoints of one image into one track (greedy, most
     trusted first: `recon.core.tracks.consistent_tracks`); false keeps every merged match."""
 
+    conflict_order: str = field(default="pairs", metadata={"choices": "recon.core.tracks:CONFLICT_ORDERS"})
+    """The consistency check's order of trust after the trusted-first rule: pairs = pair by pair,
+    the pairs with more trusted matches first, ascending descriptor distance within a pair;
+    distance = ascending descriptor distance over all pairs (`recon.core.tracks.consistent_tracks`)."""
+
     trust_px: float = 1.0
     """Distance from the pair's epipolar lines (working px, scaled to full resolution as the verify
     stage scales its threshold) within which a match counts as trusted and goes first in the
@@ -260,6 +265,10 @@ class TracksConfig:
         v = self.refine_robust_rounds
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise UserError(f"tracks.refine_robust_rounds {v!r}: an integer >= 0")
+        from recon.core.tracks import CONFLICT_ORDERS
+
+        if self.conflict_order not in CONFLICT_ORDERS:
+            raise UserError(f"tracks.conflict_order {self.conflict_order!r}: choose one of {', '.join(CONFLICT_ORDERS)}")
 
 
 @dataclass

@@ -50,7 +50,8 @@ class Tracks:
         before = track_stats(nk, merged.pairs, merged.matches)["inconsistent_share"]
         if run.cfg.tracks.consistent:
             max_error_px = run.cfg.tracks.trust_px * threshold_scale(run.px_scale())  # as the verify stage
-            merged = consistent_tracks(merged, epipolar_inliers(merged, max_error_px, run.cfg.seed))
+            merged = consistent_tracks(merged, epipolar_inliers(merged, max_error_px, run.cfg.seed),
+                                       run.cfg.tracks.conflict_order)
         refine_stats = None
         if run.cfg.tracks.consistent and run.cfg.tracks.refine and data.store is not None:
             images = {im.name: data.store.image(im.name) for im in scene.images if im.name in merged.keypoints}
