@@ -33,7 +33,8 @@ from matching.memory import RUN_INTERVAL_S, PeakRss
 from recon.config import build_run_config
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import load_gt, method_result, run_stock_preset
-from recon.eval.difficulty import DEFAULT_MAX_AZIMUTH, _scene, correct_correspondences, correct_per_pair, step_deg
+from recon.eval.difficulty import DEFAULT_MAX_AZIMUTH, _scene, step_deg
+from recon.eval.gt_planes import correct_correspondences, correct_per_pair
 
 
 def run_variant(scene: Path, out: Path, gt, settings: list[str], seed: int) -> dict[str, Any]:
@@ -64,7 +65,7 @@ def parse_variants(specs: list[str]) -> list[tuple[str, list[str]]]:
 
 def row_of(name: str, m: dict[str, Any], n: int, step: float, source: str, scene: Path) -> dict[str, Any]:
     """One table row; `correct_per_pair` from the run's database and the scene's ground truth."""
-    correct = correct_correspondences(Path(m.get("out") or ""), scene)
+    correct = correct_correspondences(m.get("out"), scene)
     return {"views": n, "step_deg": round(step, 2), "method": name, "status": m.get("status"),
             "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
             "rot_err_deg": m.get("rel_rot_err_deg_median"), "auc_5": m.get("auc_5"),

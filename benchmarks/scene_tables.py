@@ -10,7 +10,10 @@ the wider pairs (pairs a method did not verify count as 0, so a method that lose
 it; in brackets the same counting each distinct pair of keypoint positions once, for results
 that hold it: `distinct_inliers` in docs/report-schema.md), and the share of the verified match
 graph's observations in inconsistent tracks (two keypoints of one image in one track; '-' for
-results written before it was measured).
+results written before it was measured). Rendered scenes whose results hold `correct_per_pair`
+(`recon compare` since 2026-12-03: verified correspondences within sqrt(3) px of the exact
+transfer through the rendered planes, `recon.eval.gt_planes`) get a column with its mean over
+the verified pairs.
 """
 
 from __future__ import annotations
@@ -43,9 +46,11 @@ def inconsistent_share(m: dict) -> float | None:
 
 
 def rows(data: dict) -> list[str]:
+    correct = any(m.get("correct_per_pair") is not None for res in data["scenes"] for m in res["methods"].values())
     out = ["| scene (views) | method | registered | rel. rot. err. median | centre err. (rel.) | "
-           "median verified inliers, neighbours / wider pairs | inconsistent tracks (obs.) | 3D points | total s |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "median verified inliers, neighbours / wider pairs | " + ("correct per verified pair | " if correct else "")
+           + "inconsistent tracks (obs.) | 3D points | total s |",
+           "|---|---|---|---|---|---|---|---|---|" + ("---|" if correct else "")]
     for res in data["scenes"]:
         scene = Path(res["scene"]).name
         first = True
@@ -63,11 +68,16 @@ def rows(data: dict) -> list[str]:
             inc = inconsistent_share(m)
             out.append(f"| {scene + ' (' + str(m.get('num_images', 0)) + ')' if first else ''} | {label} | {reg} | "
                        f"{'-' if rot is None else f'{rot:.2f}°'} | {'-' if cen is None else f'{100 * cen:.2f} %'} | "
-                       f"{inl} | {'-' if inc is None else f'{100 * inc:.1f} %'} | "
+                       f"{inl} | {_correct(m) if correct else ''}{'-' if inc is None else f'{100 * inc:.1f} %'} | "
                        f"{m.get('num_points3D', 0)} | "
                        f"{'-' if secs is None else f'{secs:.1f}'} |")
             first = False
     return out
+
+
+def _correct(m: dict) -> str:
+    c = m.get("correct_per_pair")
+    return ("-" if c is None else f"{c:.0f}") + " | "
 
 
 def main(argv: list[str] | None = None) -> int:

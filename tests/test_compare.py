@@ -43,9 +43,13 @@ def test_compare_via_cli_ours_registers_every_image_stock_recorded(facade, tmp_p
         assert key in stock and key in ours, key
     assert stock_ok or stock["auc_5"] == 0.0
     assert ours["auc_5"] > 0.5 and ours["rel_rot_err_deg_median"] < 2.0
+    # a rendered scene: the verified correspondences checked against the exact transfer
+    assert 0.6 * ours["distinct_inliers_per_pair_mean"] < ours["correct_per_pair"] <= ours["distinct_inliers_per_pair_mean"]
+    assert (stock["correct_per_pair"] is not None) == (stock["verified_pairs"] > 0)
     assert stock_ok or (data["clouds"]["status"] == "skipped" and "stock" in data["clouds"]["message"])
     text = capsys.readouterr().out
     assert "extra_affine" in text and "stock-default" in text and stock["status"] in text
+    assert "correct (rendered truth)" in text
     cols = _columns(out / "compare.rrd")  # the default sink: both runs in one recording
     assert "Points3D:positions" in cols["/world/extra_affine/points"]
     assert any(k.startswith("/world/stock-default/") for k in cols) == stock_ok  # stock logged iff it has a model
@@ -123,6 +127,7 @@ def test_malformed_gt_warns_and_completes(facade, tmp_path):
     assert data["gt"] is None and any(str(bad) in w for w in data["warnings"])
     assert data["extra_affine"]["num_images"] == 4 and "num_points3D" in data["extra_affine"]
     assert "rel_rot_err_deg_median" not in data["extra_affine"]
+    assert data["extra_affine"]["correct_per_pair"] is None  # no readable poses, no exact transfer
     assert res["stock"]["status"] in ("ok", "no_model")  # recorded, whatever stock makes of this scene
 
 

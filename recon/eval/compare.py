@@ -20,7 +20,10 @@ report.json plus `verified_pairs`, `inliers_per_pair_mean/median`, `peak_mb` (th
 peak during that run, sampled by `matching.memory.PeakRss`: `ru_maxrss` would carry an earlier
 run's peak into later ones; the run's own figure is kept as `report_peak_mb`), and, with GT,
 `rel_rot_err_deg_median`, `rel_trans_err_deg_median`, `auc_5/10/20`, `center_err_median`,
-`center_err_rel_median` (the full evaluation without per-pair rows is under `gt_eval`).
+`center_err_rel_median` (the full evaluation without per-pair rows is under `gt_eval`), and
+`correct_per_pair`: on a rendered scene (`gt/scene.json` holds its planes) the mean verified
+correspondences per verified pair that lie within sqrt(3) px of the exact transfer
+(`recon.eval.gt_planes`), else None.
 
 Problems that must not end the comparison: a missing / malformed GT, or GT naming images the
 scene lacks (a one-line warning naming the file, evaluation skipped); a stock run that finds no
@@ -59,6 +62,7 @@ from recon.core.scene import IMAGE_EXTS
 from recon.errors import UserError
 from recon.eval.evaluate import center, evaluate_model, umeyama
 from recon.eval.gt import find_gt, gt_source
+from recon.eval.gt_planes import correct_correspondences, correct_per_pair
 
 OURS = "extra-affine"  # the matcher
 OURS_KEY = "extra_affine"  # its key in compare.json and its output folder
@@ -334,6 +338,9 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
     for name, row in methods.items():
         if row.get("status") != "ok":
             warn(f"{name}: {row.get('status')}: {row.get('message') or 'no message'}")
+        # a rendered scene (gt/scene.json holds its planes): verified correspondences that are right
+        row["correct_per_pair"] = correct_per_pair(row.get("pairs") or [],
+                                                   correct_correspondences(row.get("out"), scene_dir))
 
     res["methods"] = methods
     res["stock"] = methods[f"stock-{presets[0]}"]
@@ -419,6 +426,8 @@ def compare_table(res: dict[str, Any]):
     row("verified pairs", lambda m: f"{m.get('verified_pairs', 0)}/{m.get('num_pairs', 0)}")
     row("inliers / verified pair", lambda m: _f(m.get("inliers_per_pair_mean"), ".0f"))
     row("  distinct correspondences", lambda m: _f(m.get("distinct_inliers_per_pair_mean"), ".0f"))
+    if any(m.get("correct_per_pair") is not None for m in methods.values()):
+        row("  correct (rendered truth)", lambda m: _f(m.get("correct_per_pair"), ".0f"))
     stages: list[str] = []
     for m in methods.values():
         stages += [s for s in (m.get("stages") or {}) if s not in stages]

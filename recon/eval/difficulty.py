@@ -8,7 +8,7 @@ the extreme viewing angles stay the same; then runs `recon.eval.compare.compare_
 registered images, median relative rotation and translation-direction errors against the
 rendered ground truth, AUC@5°, verified pairs, mean verified inliers per verified pair, and
 time; the mean number of those correspondences that are right (`correct_per_pair`: distinct
-verified correspondences within `CORRECT_PX` of the exact transfer through the rendered planes,
+verified correspondences within `recon.eval.gt_planes.CORRECT_PX` of the exact transfer through the rendered planes,
 `recon.eval.gt_planes`; COLMAP's count also holds matches that fit the epipolar geometry at the
 wrong place along a line); and these means split by the pair's azimuth separation
 (`by_baseline`: neighbours, two steps apart, ...), which says where two methods part
@@ -26,22 +26,16 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from recon.config import DEFAULT_MAX_SIZE
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import OURS_KEY, compare_scene
-
-CORRECT_PX = math.sqrt(3.0)
-"""A verified correspondence is correct within this many px of the exact transfer (the pair
-benchmark's threshold, `matching.metrics.DEFAULT_TH`: the 3x3 neighbourhood of the true point)."""
+from recon.eval.gt_planes import correct_correspondences, correct_per_pair
 
 DEFAULT_VIEWS = (3, 4, 5, 7, 9, 13)
 DEFAULT_MAX_AZIMUTH = 78.0
@@ -79,7 +73,7 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
     method's database and the scene's ground truth, when both are still there)."""
     rows = []
     for name, m in res["methods"].items():
-        correct = correct_correspondences(Path(m.get("out") or ""), Path(res.get("scene") or ""))
+        correct = correct_correspondences(m.get("out"), res.get("scene"))
         rows.append({
             "views": num_views, "step_deg": round(step, 2), "method": "ours" if name == OURS_KEY else name,
             "status": m.get("status"), "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
@@ -92,52 +86,6 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
             "by_baseline": by_baseline(m.get("pairs") or [], step, correct),
         })
     return rows
-
-
-def correct_per_pair(pairs: Sequence[dict[str, Any]], correct: dict[tuple[str, str], int] | None) -> float | None:
-    """Mean correct correspondences (`correct_correspondences`) over the verified pairs of a run
-    report's pair rows; None without them."""
-    verified = [p for p in pairs if p.get("verified_inliers", 0) > 0]
-    if correct is None or not verified:
-        return None
-    return sum(correct.get(_key(p), 0) for p in verified) / len(verified)
-
-
-def _key(p: dict[str, Any]) -> tuple[str, str]:
-    a, b = p["image0"], p["image1"]
-    return (a, b) if a <= b else (b, a)
-
-
-def correct_correspondences(run_dir: Path, scene_dir: Path, max_px: float = CORRECT_PX) -> dict[tuple[str, str], int] | None:
-    """{(name0, name1) in name order: distinct verified correspondences within `max_px` of the exact
-    transfer} of the run's `database.db` (keypoints in full-resolution px, the rendered size), or
-    None without the database or the scene's `gt/` (a moved or trimmed benchmark folder)."""
-    import pycolmap
-
-    from recon.core.database import read_keypoints_opencv, read_verified
-    from recon.eval.gt import read_colmap_text
-    from recon.eval.gt_planes import correct_matches, rects_from_scene
-
-    db_path, meta_path = run_dir / "database.db", scene_dir / "gt" / "scene.json"
-    if not db_path.is_file() or not meta_path.is_file():
-        return None
-    rects = rects_from_scene(json.loads(meta_path.read_text(encoding="utf-8")))
-    cams = read_colmap_text(scene_dir / "gt")
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        names = {int(im.image_id): im.name for im in db.read_all_images()}
-    finally:
-        db.close()
-    kpts = {i: read_keypoints_opencv(db_path, i) for i in names}
-    out: dict[tuple[str, str], int] = {}
-    for (a, b), (n, _conf, m) in read_verified(db_path).items():
-        if n == 0 or names[a] not in cams or names[b] not in cams:
-            continue
-        pairs = np.unique(np.round(np.c_[kpts[a][m[:, 0]], kpts[b][m[:, 1]]], 2), axis=0)  # distinct positions
-        ok = correct_matches(rects, cams[names[a]], cams[names[b]], pairs[:, :2], pairs[:, 2:], max_px)
-        key = (names[a], names[b]) if names[a] <= names[b] else (names[b], names[a])
-        out[key] = int(ok.sum())
-    return out
 
 
 def by_baseline(pairs: Sequence[dict[str, Any]], step: float,

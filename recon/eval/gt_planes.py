@@ -5,7 +5,8 @@ pixel's true match is known exactly: cast its ray from the camera centre, take t
 rectangle it meets from the front (the renderer draws front faces only, with a z-buffer), and
 project that point into the other view, where it must again be the nearest front face along
 that camera's ray (else it is hidden there). `correct_matches` says which matched keypoint
-pairs land within `max_px` of that transfer. COLMAP's verified-inlier count only says a match
+pairs land within `max_px` of that transfer, and `correct_correspondences` counts them in a
+run's verified matches (its `database.db`) per pair. COLMAP's verified-inlier count only says a match
 fits the pair's epipolar geometry (a wrong match along the right line passes), and it counts a
 correspondence once per copy of a keypoint; this counts the correspondences that are right.
 
@@ -15,14 +16,21 @@ metres; rectangles as `gt/scene.json` stores them (`corners_m`: origin, +u, +u+v
 
 from __future__ import annotations
 
+import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from recon.eval.gt import GtCamera
+
+CORRECT_PX = math.sqrt(3.0)
+"""A verified correspondence is correct within this many px of the exact transfer (the pair
+benchmark's threshold, `matching.metrics.DEFAULT_TH`: the 3x3 neighbourhood of the true point)."""
 
 
 @dataclass(frozen=True)
@@ -92,3 +100,59 @@ def correct_matches(rects: Sequence[Rect], cam0: GtCamera, cam1: GtCamera, pts0:
     uv = transfer(rects, cam0, cam1, pts0)
     err = np.linalg.norm(uv - np.asarray(pts1, np.float64).reshape(-1, 2), axis=1)
     return np.asarray(np.isfinite(err) & (err <= max_px), bool)
+
+
+def correct_per_pair(pairs: Sequence[Mapping[str, Any]], correct: dict[tuple[str, str], int] | None) -> float | None:
+    """Mean correct correspondences (`correct_correspondences`) over the verified pairs of a run
+    report's pair rows; None without them."""
+    verified = [p for p in pairs if p.get("verified_inliers", 0) > 0]
+    if correct is None or not verified:
+        return None
+    return sum(correct.get(pair_key(p), 0) for p in verified) / len(verified)
+
+
+def pair_key(p: Mapping[str, Any]) -> tuple[str, str]:
+    """(image0, image1) of a report pair row, in name order (`correct_correspondences`' keys)."""
+    a, b = p["image0"], p["image1"]
+    return (a, b) if a <= b else (b, a)
+
+
+def correct_correspondences(run_dir: str | Path | None, scene_dir: str | Path | None, max_px: float = CORRECT_PX
+                            ) -> dict[tuple[str, str], int] | None:
+    """{(name0, name1) in name order: distinct verified correspondences within `max_px` of the exact
+    transfer} of the run's `database.db` (keypoints in full-resolution px, the rendered size), or
+    None without the database or a readable `gt/` with the scene's planes (a real scene, a moved
+    or trimmed benchmark folder, a damaged ground truth: `recon compare` warns about that one)."""
+    import pycolmap
+
+    from matching.errors import InputError
+    from recon.core.database import read_keypoints_opencv, read_verified
+    from recon.eval.gt import read_colmap_text
+
+    if not run_dir or not scene_dir:
+        return None
+    db_path, meta_path = Path(run_dir) / "database.db", Path(scene_dir) / "gt" / "scene.json"
+    if not db_path.is_file() or not meta_path.is_file():
+        return None
+    try:
+        rects = rects_from_scene(json.loads(meta_path.read_text(encoding="utf-8")))
+        cams = read_colmap_text(Path(scene_dir) / "gt")
+    except (InputError, OSError, ValueError, KeyError, TypeError):
+        return None
+    if not rects:
+        return None
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        names = {int(im.image_id): im.name for im in db.read_all_images()}
+    finally:
+        db.close()
+    kpts = {i: read_keypoints_opencv(db_path, i) for i in names}
+    out: dict[tuple[str, str], int] = {}
+    for (a, b), (n, _conf, m) in read_verified(db_path).items():
+        if n == 0 or names[a] not in cams or names[b] not in cams:
+            continue
+        pairs = np.unique(np.round(np.c_[kpts[a][m[:, 0]], kpts[b][m[:, 1]]], 2), axis=0)  # distinct positions
+        ok = correct_matches(rects, cams[names[a]], cams[names[b]], pairs[:, :2], pairs[:, 2:], max_px)
+        key = (names[a], names[b]) if names[a] <= names[b] else (names[b], names[a])
+        out[key] = int(ok.sum())
+    return out
