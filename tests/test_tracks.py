@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from recon.core.tracks import (
+    MergedTracks,
     PairMatches,
     _leader_cluster,
     connected_components,
@@ -339,3 +340,24 @@ def test_distinct_correspondences_count_a_repeated_pair_of_positions_once():
     assert distinct_correspondences(k0, k1, m) == 3
     assert distinct_correspondences(k0, k1, m, decimals=3) == 4
     assert distinct_correspondences(k0, k1, np.zeros((0, 2), np.int64)) == 0
+
+
+def test_conflict_order_by_distance_drops_the_far_match_not_the_small_pair():
+    """A wrong match (a0, b0) with a large descriptor distance in the pair with most matches, and a
+    right chain a1 - c0 - b0 through two one-match pairs. Pair by pair, (A, B) goes first and its
+    wrong match drops (b0, c0); by distance over all pairs, the wrong match is the one dropped."""
+    kp = np.zeros((3, 2), np.float32)
+    mt = MergedTracks({"A": kp, "B": kp, "C": kp[:1]},
+                      [np.array([[0, 0], [2, 2]], np.uint32), np.array([[0, 0]], np.uint32),
+                       np.array([[1, 0]], np.uint32)],
+                      [("A", "B"), ("B", "C"), ("A", "C")],
+                      distances=[np.array([300.0, 50.0], np.float32), np.array([40.0], np.float32),
+                                 np.array([30.0], np.float32)])
+    trusted = [np.ones(len(m), bool) for m in mt.matches]
+    by_pairs = consistent_tracks(mt, trusted, "pairs")
+    assert [m.tolist() for m in by_pairs.matches] == [[[0, 0], [2, 2]], [], [[1, 0]]]
+    by_distance = consistent_tracks(mt, trusted, "distance")
+    assert [m.tolist() for m in by_distance.matches] == [[[2, 2]], [[0, 0]], [[1, 0]]]
+    assert by_pairs.stats.dropped_conflicts == by_distance.stats.dropped_conflicts == 1
+    with pytest.raises(ValueError, match="order_by"):
+        consistent_tracks(mt, trusted, "random")
