@@ -8,12 +8,13 @@ the extreme viewing angles stay the same; then runs `recon.eval.compare.compare_
 registered images, median relative rotation and translation-direction errors against the
 rendered ground truth, AUC@5°, verified pairs, mean verified inliers per verified pair, and
 time; the mean number of those correspondences that are right (`correct_per_pair`: distinct
-verified correspondences within `recon.eval.gt_planes.CORRECT_PX` of the exact transfer through the rendered planes,
-`recon.eval.gt_planes`; COLMAP's count also holds matches that fit the epipolar geometry at the
-wrong place along a line); and these means split by the pair's azimuth separation
-(`by_baseline`: neighbours, two steps apart, ...), which says where two methods part
-(`baseline_table`). A scene that does not register fully still counts: its rotation error is over the pairs
-it did register (and `registered` says how many), AUC counts unregistered pairs as failures.
+verified correspondences within `gt_planes.CORRECT_PX` of the exact transfer through the
+rendered planes, `recon.eval.gt_planes`; COLMAP's count also holds matches that fit the
+epipolar geometry at the wrong place along a line); and these means split by the pair's
+azimuth separation (`by_baseline`: neighbours, two steps apart, ...), which says where two
+methods part (`baseline_table`). A scene that does not register fully still counts: its
+rotation error is over the pairs it did register (and `registered` says how many), AUC counts
+unregistered pairs as failures.
 
 Outputs (under OUT): `scenes/<preset>/` (rendered once, reused when the same seed and size are
 already there), `runs/<preset>/` (each `compare` output), `difficulty.json` (rows + config,
@@ -191,7 +192,7 @@ def difficulty_table(data: dict[str, Any]):
 
 def baseline_table(data: dict[str, Any], views: int | None = None):
     """A rich table of one sweep (`views`, default the densest): verified inliers per verified
-    pair, raw (distinct), per azimuth separation and method (`by_baseline`)."""
+    pair, raw (distinct, correct), per azimuth separation and method (`by_baseline`)."""
     from rich.table import Table
 
     rows = data["rows"]
