@@ -34,7 +34,7 @@ from recon.config import build_run_config
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import load_gt, method_result, run_stock_preset
 from recon.eval.difficulty import DEFAULT_MAX_AZIMUTH, _scene, step_deg
-from recon.eval.gt_planes import correct_correspondences, correct_per_pair
+from recon.eval.gt_planes import correct_counts, correct_error_median, correct_per_pair, transfer_errors
 
 
 def run_variant(scene: Path, out: Path, gt, settings: list[str], seed: int) -> dict[str, Any]:
@@ -65,14 +65,16 @@ def parse_variants(specs: list[str]) -> list[tuple[str, list[str]]]:
 
 def row_of(name: str, m: dict[str, Any], n: int, step: float, source: str, scene: Path) -> dict[str, Any]:
     """One table row; `correct_per_pair` from the run's database and the scene's ground truth."""
-    correct = correct_correspondences(m.get("out"), scene)
+    errors = transfer_errors(m.get("out"), scene)
+    correct = correct_counts(errors)
     return {"views": n, "step_deg": round(step, 2), "method": name, "status": m.get("status"),
             "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
             "rot_err_deg": m.get("rel_rot_err_deg_median"), "auc_5": m.get("auc_5"),
             "verified_pairs": m.get("verified_pairs", 0), "pairs": m.get("num_pairs", 0),
             "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0),
             "distinct_per_pair": m.get("distinct_inliers_per_pair_mean", 0.0),
-            "correct_per_pair": correct_per_pair(m.get("pairs") or [], correct), "points": m.get("num_points3D", 0),
+            "correct_per_pair": correct_per_pair(m.get("pairs") or [], correct),
+            "correct_median_px": correct_error_median(errors), "points": m.get("num_points3D", 0),
             "reproj_px": m.get("mean_reprojection_error"), "seconds": m.get("seconds_total"),
             "match_seconds": (m.get("stages") or {}).get("match"),
             "source": source}

@@ -13,7 +13,7 @@ graph's observations in inconsistent tracks (two keypoints of one image in one t
 results written before it was measured). Rendered scenes whose results hold `correct_per_pair`
 (`recon compare` since 2026-12-03: verified correspondences within sqrt(3) px of the exact
 transfer through the rendered planes, `recon.eval.gt_planes`) get a column with its mean over
-the verified pairs.
+the verified pairs and their median distance from that transfer (`correct_median_px`).
 """
 
 from __future__ import annotations
@@ -76,8 +76,8 @@ def rows(data: dict) -> list[str]:
 
 
 def _correct(m: dict) -> str:
-    c = m.get("correct_per_pair")
-    return ("-" if c is None else f"{c:.0f}") + " | "
+    c, med = m.get("correct_per_pair"), m.get("correct_median_px")
+    return ("-" if c is None else f"{c:.0f}") + ("" if med is None else f", {med:.2f} px") + " | "
 
 
 def main(argv: list[str] | None = None) -> int:

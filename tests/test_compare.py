@@ -46,10 +46,11 @@ def test_compare_via_cli_ours_registers_every_image_stock_recorded(facade, tmp_p
     # a rendered scene: the verified correspondences checked against the exact transfer
     assert 0.6 * ours["distinct_inliers_per_pair_mean"] < ours["correct_per_pair"] <= ours["distinct_inliers_per_pair_mean"]
     assert (stock["correct_per_pair"] is not None) == (stock["verified_pairs"] > 0)
+    assert ours["correct_median_px"] < 0.5
     assert stock_ok or (data["clouds"]["status"] == "skipped" and "stock" in data["clouds"]["message"])
     text = capsys.readouterr().out
     assert "extra_affine" in text and "stock-default" in text and stock["status"] in text
-    assert "correct (rendered truth)" in text
+    assert "correct (rendered truth)" in text and "their median error px" in text
     cols = _columns(out / "compare.rrd")  # the default sink: both runs in one recording
     assert "Points3D:positions" in cols["/world/extra_affine/points"]
     assert any(k.startswith("/world/stock-default/") for k in cols) == stock_ok  # stock logged iff it has a model

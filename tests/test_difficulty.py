@@ -30,6 +30,7 @@ def test_difficulty_sweep_rows_table_plot_and_reuse(tmp_path, capsys):
     assert rows["ours"]["verified_pairs"] >= 3 and rows["ours"]["inliers_per_pair"] > 30
     # correct (within sqrt(3) px of the exact transfer through the rendered planes): most, not all
     assert 0.6 * rows["ours"]["distinct_per_pair"] < rows["ours"]["correct_per_pair"] <= rows["ours"]["distinct_per_pair"]
+    assert rows["ours"]["correct_median_px"] < 0.5  # the right matches lie well inside the 1.7 px threshold
     seps = [b["separation_deg"] for b in rows["ours"]["by_baseline"]]  # 6 pairs: 3 neighbours, 2 at two steps, 1 at three
     assert seps == [round(k * step_deg(4, 80.0), 2) for k in (1, 2, 3)]
     assert [b["pairs"] for b in rows["ours"]["by_baseline"]] == [3, 2, 1]

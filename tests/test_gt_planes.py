@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 
 from recon.eval.gt import GtCamera, read_colmap_text
-from recon.eval.gt_planes import Rect, correct_correspondences, correct_matches, rects_from_scene, transfer
+from recon.eval.gt_planes import (Rect, correct_correspondences, correct_counts, correct_error_median, correct_matches,
+                                  rects_from_scene, transfer)
 from scenes.render import centred_K, look_at_pose
 
 
@@ -99,3 +100,11 @@ def test_correct_correspondences_needs_a_database_and_planes(tmp_path, rendered_
     assert correct_correspondences(tmp_path, scene) is None  # no database.db there
     (tmp_path / "database.db").write_bytes(b"")
     assert correct_correspondences(tmp_path, tmp_path) is None  # no gt/scene.json
+
+
+def test_correct_counts_and_median_error_ignore_wrong_and_untransferable_matches():
+    errors = {("a", "b"): np.array([0.1, 0.3, 5.0, np.inf]), ("a", "c"): np.array([0.2, 1.7]), ("b", "c"): np.array([9.0])}
+    assert correct_counts(errors) == {("a", "b"): 2, ("a", "c"): 2, ("b", "c"): 0}
+    assert correct_counts(errors, 0.25) == {("a", "b"): 1, ("a", "c"): 1, ("b", "c"): 0}
+    assert correct_error_median(errors) == 0.25  # median of 0.1, 0.3, 0.2, 1.7
+    assert correct_error_median({("b", "c"): np.array([9.0])}) is None and correct_counts(None) is None

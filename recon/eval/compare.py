@@ -23,7 +23,7 @@ run's peak into later ones; the run's own figure is kept as `report_peak_mb`), a
 `center_err_rel_median` (the full evaluation without per-pair rows is under `gt_eval`), and
 `correct_per_pair`: on a rendered scene (`gt/scene.json` holds its planes) the mean verified
 correspondences per verified pair that lie within sqrt(3) px of the exact transfer
-(`recon.eval.gt_planes`), else None.
+(`recon.eval.gt_planes`) and `correct_median_px`, their median distance from it, else None.
 
 Problems that must not end the comparison: a missing / malformed GT, or GT naming images the
 scene lacks (a one-line warning naming the file, evaluation skipped); a stock run that finds no
@@ -62,7 +62,7 @@ from recon.core.scene import IMAGE_EXTS
 from recon.errors import UserError
 from recon.eval.evaluate import center, evaluate_model, umeyama
 from recon.eval.gt import find_gt, gt_source
-from recon.eval.gt_planes import correct_correspondences, correct_per_pair
+from recon.eval.gt_planes import correct_counts, correct_error_median, correct_per_pair, transfer_errors
 
 OURS = "extra-affine"  # the matcher
 OURS_KEY = "extra_affine"  # its key in compare.json and its output folder
@@ -339,8 +339,9 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
         if row.get("status") != "ok":
             warn(f"{name}: {row.get('status')}: {row.get('message') or 'no message'}")
         # a rendered scene (gt/scene.json holds its planes): verified correspondences that are right
-        row["correct_per_pair"] = correct_per_pair(row.get("pairs") or [],
-                                                   correct_correspondences(row.get("out"), scene_dir))
+        errors = transfer_errors(row.get("out"), scene_dir)
+        row["correct_per_pair"] = correct_per_pair(row.get("pairs") or [], correct_counts(errors))
+        row["correct_median_px"] = correct_error_median(errors)
 
     res["methods"] = methods
     res["stock"] = methods[f"stock-{presets[0]}"]
@@ -428,6 +429,7 @@ def compare_table(res: dict[str, Any]):
     row("  distinct correspondences", lambda m: _f(m.get("distinct_inliers_per_pair_mean"), ".0f"))
     if any(m.get("correct_per_pair") is not None for m in methods.values()):
         row("  correct (rendered truth)", lambda m: _f(m.get("correct_per_pair"), ".0f"))
+        row("  their median error px", lambda m: _f(m.get("correct_median_px"), ".3f"))
     stages: list[str] = []
     for m in methods.values():
         stages += [s for s in (m.get("stages") or {}) if s not in stages]

@@ -10,7 +10,8 @@ rendered ground truth, AUC@5°, verified pairs, mean verified inliers per verifi
 time; the mean number of those correspondences that are right (`correct_per_pair`: distinct
 verified correspondences within `gt_planes.CORRECT_PX` of the exact transfer through the
 rendered planes, `recon.eval.gt_planes`; COLMAP's count also holds matches that fit the
-epipolar geometry at the wrong place along a line); and these means split by the pair's
+epipolar geometry at the wrong place along a line) and their median distance from it
+(`correct_median_px`: how precisely they are localised); and these means split by the pair's
 azimuth separation (`by_baseline`: neighbours, two steps apart, ...), which says where two
 methods part (`baseline_table`). A scene that does not register fully still counts: its
 rotation error is over the pairs it did register (and `registered` says how many), AUC counts
@@ -36,7 +37,7 @@ from typing import Any
 from recon.config import DEFAULT_MAX_SIZE
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import OURS_KEY, compare_scene
-from recon.eval.gt_planes import correct_correspondences, correct_per_pair
+from recon.eval.gt_planes import correct_counts, correct_error_median, correct_per_pair, transfer_errors
 
 DEFAULT_VIEWS = (3, 4, 5, 7, 9, 13)
 DEFAULT_MAX_AZIMUTH = 78.0
@@ -74,7 +75,8 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
     method's database and the scene's ground truth, when both are still there)."""
     rows = []
     for name, m in res["methods"].items():
-        correct = correct_correspondences(m.get("out"), res.get("scene"))
+        errors = transfer_errors(m.get("out"), res.get("scene"))
+        correct = correct_counts(errors)
         rows.append({
             "views": num_views, "step_deg": round(step, 2), "method": "ours" if name == OURS_KEY else name,
             "status": m.get("status"), "registered": m.get("registered_images", 0), "images": m.get("num_images", 0),
@@ -83,6 +85,7 @@ def rows_of(res: dict[str, Any], num_views: int, step: float) -> list[dict[str, 
             "inliers_per_pair": m.get("inliers_per_pair_mean", 0.0),
             "distinct_per_pair": m.get("distinct_inliers_per_pair_mean", 0.0), "points": m.get("num_points3D", 0),
             "correct_per_pair": correct_per_pair(m.get("pairs") or [], correct),
+            "correct_median_px": correct_error_median(errors),
             "seconds": m.get("seconds_total"),
             "by_baseline": by_baseline(m.get("pairs") or [], step, correct),
         })
@@ -97,7 +100,7 @@ def by_baseline(pairs: Sequence[dict[str, Any]], step: float,
     named in azimuth order `step` degrees apart (`scenes.presets.facade_sweep`), so a pair's
     separation is its name-rank difference times `step`. Pairs without verified inliers are
     counted in `pairs` only (as `verified_pairs` counts them out of the means). With `correct`
-    (`correct_correspondences`) each group also gets `correct_per_pair`."""
+    (`gt_planes.correct_counts`) each group also gets `correct_per_pair`."""
     names = sorted({p[k] for p in pairs for k in ("image0", "image1")})
     rank = {n: i for i, n in enumerate(names)}
     groups: dict[int, list[dict[str, Any]]] = {}

@@ -5,8 +5,9 @@ pixel's true match is known exactly: cast its ray from the camera centre, take t
 rectangle it meets from the front (the renderer draws front faces only, with a z-buffer), and
 project that point into the other view, where it must again be the nearest front face along
 that camera's ray (else it is hidden there). `correct_matches` says which matched keypoint
-pairs land within `max_px` of that transfer, and `correct_correspondences` counts them in a
-run's verified matches (its `database.db`) per pair. COLMAP's verified-inlier count only says a match
+pairs land within `max_px` of that transfer; `transfer_errors` measures a run's verified
+matches (its `database.db`) against it, `correct_counts` counts the correct ones per pair and
+`correct_error_median` says how precisely they are localised. COLMAP's verified-inlier count only says a match
 fits the pair's epipolar geometry (a wrong match along the right line passes), and it counts a
 correspondence once per copy of a keypoint; this counts the correspondences that are right.
 
@@ -117,12 +118,13 @@ def pair_key(p: Mapping[str, Any]) -> tuple[str, str]:
     return (a, b) if a <= b else (b, a)
 
 
-def correct_correspondences(run_dir: str | Path | None, scene_dir: str | Path | None, max_px: float = CORRECT_PX
-                            ) -> dict[tuple[str, str], int] | None:
-    """{(name0, name1) in name order: distinct verified correspondences within `max_px` of the exact
-    transfer} of the run's `database.db` (keypoints in full-resolution px, the rendered size), or
-    None without the database or a readable `gt/` with the scene's planes (a real scene, a moved
-    or trimmed benchmark folder, a damaged ground truth: `recon compare` warns about that one)."""
+def transfer_errors(run_dir: str | Path | None, scene_dir: str | Path | None
+                    ) -> dict[tuple[str, str], NDArray[np.float64]] | None:
+    """{(name0, name1) in name order: the distance (px) of each distinct verified correspondence
+    of the pair from the exact transfer of its first keypoint (inf where it has none)} of the
+    run's `database.db` (keypoints in full-resolution px, the rendered size), or None without the
+    database or a readable `gt/` with the scene's planes (a real scene, a moved or trimmed
+    benchmark folder, a damaged ground truth: `recon compare` warns about that one)."""
     import pycolmap
 
     from matching.errors import InputError
@@ -147,12 +149,35 @@ def correct_correspondences(run_dir: str | Path | None, scene_dir: str | Path | 
     finally:
         db.close()
     kpts = {i: read_keypoints_opencv(db_path, i) for i in names}
-    out: dict[tuple[str, str], int] = {}
+    out: dict[tuple[str, str], NDArray[np.float64]] = {}
     for (a, b), (n, _conf, m) in read_verified(db_path).items():
         if n == 0 or names[a] not in cams or names[b] not in cams:
             continue
         pairs = np.unique(np.round(np.c_[kpts[a][m[:, 0]], kpts[b][m[:, 1]]], 2), axis=0)  # distinct positions
-        ok = correct_matches(rects, cams[names[a]], cams[names[b]], pairs[:, :2], pairs[:, 2:], max_px)
+        err = np.linalg.norm(transfer(rects, cams[names[a]], cams[names[b]], pairs[:, :2]) - pairs[:, 2:], axis=1)
         key = (names[a], names[b]) if names[a] <= names[b] else (names[b], names[a])
-        out[key] = int(ok.sum())
+        out[key] = np.where(np.isfinite(err), err, np.inf)
     return out
+
+
+def correct_counts(errors: Mapping[tuple[str, str], NDArray] | None, max_px: float = CORRECT_PX
+                   ) -> dict[tuple[str, str], int] | None:
+    """{pair: correspondences within `max_px` of the exact transfer} of `transfer_errors`."""
+    return None if errors is None else {k: int(np.sum(e <= max_px)) for k, e in errors.items()}
+
+
+def correct_error_median(errors: Mapping[tuple[str, str], NDArray] | None, max_px: float = CORRECT_PX) -> float | None:
+    """Median distance (px) from the exact transfer over every pair's correct correspondences:
+    how precisely the right matches are localised; None without any."""
+    if errors is None:
+        return None
+    ok = [e[e <= max_px] for e in errors.values()]
+    ok = [e for e in ok if len(e)]
+    return float(np.median(np.concatenate(ok))) if ok else None
+
+
+def correct_correspondences(run_dir: str | Path | None, scene_dir: str | Path | None, max_px: float = CORRECT_PX
+                            ) -> dict[tuple[str, str], int] | None:
+    """{(name0, name1) in name order: distinct verified correspondences within `max_px` of the
+    exact transfer} of a run (`transfer_errors`, `correct_counts`), or None."""
+    return correct_counts(transfer_errors(run_dir, scene_dir), max_px)
