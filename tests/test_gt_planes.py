@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 
 from recon.eval.gt import GtCamera, read_colmap_text
-from recon.eval.gt_planes import (Rect, correct_correspondences, correct_counts, correct_error_median, correct_matches,
-                                  rects_from_scene, transfer)
+from recon.eval.gt_planes import (Rect, correct_counts, correct_error_median, correct_matches, rects_from_scene, transfer,
+                                  transfer_errors)
 from scenes.render import centred_K, look_at_pose
 
 
@@ -91,15 +91,15 @@ def test_rendered_neighbours_sift_inliers_land_on_the_transfer(rendered_scene):
     assert correct_matches(rects, cams[a], cams[b], p0, shuffled, np.sqrt(3.0)).mean() < 0.05
 
 
-def test_correct_correspondences_needs_a_database_and_planes(tmp_path, rendered_scene):
+def test_transfer_errors_need_a_database_and_planes(tmp_path, rendered_scene):
     """No run folder, a run without its database, or a scene without planes: no count (None),
     never a count read from whatever database.db sits in the working directory."""
     scene = rendered_scene("corner")
-    assert correct_correspondences(None, scene) is None
-    assert correct_correspondences("", scene) is None
-    assert correct_correspondences(tmp_path, scene) is None  # no database.db there
+    assert transfer_errors(None, scene) is None
+    assert transfer_errors("", scene) is None
+    assert transfer_errors(tmp_path, scene) is None  # no database.db there
     (tmp_path / "database.db").write_bytes(b"")
-    assert correct_correspondences(tmp_path, tmp_path) is None  # no gt/scene.json
+    assert transfer_errors(tmp_path, tmp_path) is None  # no gt/scene.json
 
 
 def test_correct_counts_and_median_error_ignore_wrong_and_untransferable_matches():

@@ -18,7 +18,6 @@ metres; rectangles as `gt/scene.json` stores them (`corners_m`: origin, +u, +u+v
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,11 +26,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from matching.metrics import DEFAULT_TH
 from recon.eval.gt import GtCamera
 
-CORRECT_PX = math.sqrt(3.0)
+CORRECT_PX = DEFAULT_TH
 """A verified correspondence is correct within this many px of the exact transfer (the pair
-benchmark's threshold, `matching.metrics.DEFAULT_TH`: the 3x3 neighbourhood of the true point)."""
+benchmark's threshold: the 3x3 neighbourhood of the true point)."""
 
 
 @dataclass(frozen=True)
@@ -104,7 +104,7 @@ def correct_matches(rects: Sequence[Rect], cam0: GtCamera, cam1: GtCamera, pts0:
 
 
 def correct_per_pair(pairs: Sequence[Mapping[str, Any]], correct: dict[tuple[str, str], int] | None) -> float | None:
-    """Mean correct correspondences (`correct_correspondences`) over the verified pairs of a run
+    """Mean correct correspondences (`correct_counts`) over the verified pairs of a run
     report's pair rows; None without them."""
     verified = [p for p in pairs if p.get("verified_inliers", 0) > 0]
     if correct is None or not verified:
@@ -113,8 +113,11 @@ def correct_per_pair(pairs: Sequence[Mapping[str, Any]], correct: dict[tuple[str
 
 
 def pair_key(p: Mapping[str, Any]) -> tuple[str, str]:
-    """(image0, image1) of a report pair row, in name order (`correct_correspondences`' keys)."""
-    a, b = p["image0"], p["image1"]
+    """(image0, image1) of a report pair row, in name order (`transfer_errors`' keys)."""
+    return _ordered(p["image0"], p["image1"])
+
+
+def _ordered(a: str, b: str) -> tuple[str, str]:
     return (a, b) if a <= b else (b, a)
 
 
@@ -153,10 +156,10 @@ def transfer_errors(run_dir: str | Path | None, scene_dir: str | Path | None
     for (a, b), (n, _conf, m) in read_verified(db_path).items():
         if n == 0 or names[a] not in cams or names[b] not in cams:
             continue
-        pairs = np.unique(np.round(np.c_[kpts[a][m[:, 0]], kpts[b][m[:, 1]]], 2), axis=0)  # distinct positions
+        # distinct position pairs, as `recon.core.tracks.distinct_correspondences` counts them
+        pairs = np.unique(np.round(np.c_[kpts[a][m[:, 0]], kpts[b][m[:, 1]]], 2), axis=0)
         err = np.linalg.norm(transfer(rects, cams[names[a]], cams[names[b]], pairs[:, :2]) - pairs[:, 2:], axis=1)
-        key = (names[a], names[b]) if names[a] <= names[b] else (names[b], names[a])
-        out[key] = np.where(np.isfinite(err), err, np.inf)
+        out[_ordered(names[a], names[b])] = np.where(np.isfinite(err), err, np.inf)
     return out
 
 
@@ -175,9 +178,3 @@ def correct_error_median(errors: Mapping[tuple[str, str], NDArray] | None, max_p
     ok = [e for e in ok if len(e)]
     return float(np.median(np.concatenate(ok))) if ok else None
 
-
-def correct_correspondences(run_dir: str | Path | None, scene_dir: str | Path | None, max_px: float = CORRECT_PX
-                            ) -> dict[tuple[str, str], int] | None:
-    """{(name0, name1) in name order: distinct verified correspondences within `max_px` of the
-    exact transfer} of a run (`transfer_errors`, `correct_counts`), or None."""
-    return correct_counts(transfer_errors(run_dir, scene_dir), max_px)
