@@ -233,8 +233,9 @@ class TracksConfig:
     conflict_order: str = field(default="pairs", metadata={"choices": "recon.core.tracks:CONFLICT_ORDERS"})
     """The consistency check's order of trust after the trusted-first rule: pairs = pair by pair,
     the pairs with more trusted matches first, ascending descriptor distance within a pair;
-    distance = ascending descriptor distance over all pairs (`recon.core.tracks.consistent_tracks`;
-    measured, not the default: docs/decisions.md, "Conflict order")."""
+    distance = ascending descriptor distance over all pairs; support = descending triangle support
+    (third-image keypoints matched to both sides) over all pairs (`recon.core.tracks.consistent_tracks`;
+    docs/decisions.md, "Conflict order")."""
 
     trust_px: float = 1.0
     """Distance from the pair's epipolar lines (working px, scaled to full resolution as the verify

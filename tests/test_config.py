@@ -126,7 +126,7 @@ def test_set_reaches_the_matcher(tmp_path, capsys, captured):
     ("sfm.final_ba_scale_px=-1", "sfm.final_ba_scale_px"),
     ("sfm.final_ba_outlier_scales=-1", "sfm.final_ba_outlier_scales"),
     ("sfm.final_ba_principal_point=maybe", "fixed, refine, auto"),
-    ("tracks.conflict_order=random", "pairs, distance"),
+    ("tracks.conflict_order=random", "pairs, distance, support"),
 ])
 def test_bad_set_is_one_line_exit_2(tmp_path, capsys, captured, setting, text):
     rc, lines = _cli(tmp_path, capsys, "--set", setting)

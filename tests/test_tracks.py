@@ -361,3 +361,28 @@ def test_conflict_order_by_distance_drops_the_far_match_not_the_small_pair():
     assert by_pairs.stats.dropped_conflicts == by_distance.stats.dropped_conflicts == 1
     with pytest.raises(ValueError, match="order_by"):
         consistent_tracks(mt, trusted, "random")
+
+
+def test_conflict_order_by_support_drops_the_match_no_third_image_confirms():
+    """One point seen as a0, b0, c0, d0 in four images, matched in five pairs (not B-D), and a
+    wrong match b0 - d1 with the lowest descriptor distance in the pair with most matches (B-D,
+    whose other match b2 - d2 is a point only B and D see). Pair by pair and by distance, the wrong
+    match settles first and the right (A, D) and (C, D) matches drop; by triangle support (a0-c0
+    closes two triangles, through b0 and d0; b0-d1 none) only the wrong one drops."""
+    from recon.core.tracks import match_graph, triangle_support
+
+    kp = np.zeros((3, 2), np.float32)
+    pairs = [("B", "D"), ("A", "B"), ("A", "C"), ("A", "D"), ("B", "C"), ("C", "D")]
+    matches = [np.array([[0, 1], [2, 2]], np.uint32)] + [np.array([[0, 0]], np.uint32)] * 5
+    distances = [np.array([10.0, 90.0], np.float32)] + [np.array([50.0], np.float32)] * 5
+    mt = MergedTracks({n: kp for n in "ABCD"}, matches, pairs, distances=distances)
+    assert triangle_support(match_graph(mt)).tolist() == [0, 0, 1, 2, 1, 1, 1]
+    trusted = [np.ones(len(m), bool) for m in mt.matches]
+    for order in ("pairs", "distance"):
+        kept = consistent_tracks(mt, trusted, order)
+        assert kept.matches[0].tolist() == [[0, 1], [2, 2]]
+        assert kept.matches[3].tolist() == kept.matches[5].tolist() == []
+    by_support = consistent_tracks(mt, trusted, "support")
+    assert [m.tolist() for m in by_support.matches] == [[[2, 2]]] + [[[0, 0]]] * 5
+    assert by_support.stats.dropped_conflicts == 1
+    assert track_stats(_nk(by_support), by_support.pairs, by_support.matches)["inconsistent"] == 0

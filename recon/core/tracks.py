@@ -331,8 +331,30 @@ def match_graph(merged: MergedTracks) -> MatchGraph:
     return MatchGraph(names, offset, u, v, pair_of, row)
 
 
-CONFLICT_ORDERS = ("pairs", "distance")
+CONFLICT_ORDERS = ("pairs", "distance", "support")
 """`consistent_tracks`' orders of trust among the trusted (and then the other) matches."""
+
+
+def triangle_support(graph: MatchGraph) -> NDArray[np.int64]:
+    """Per match of `graph`, the number of keypoints (of third images) matched to both of its
+    keypoints: the triangles the match closes in the match graph, (A A)[u, v] for the symmetric
+    adjacency A (scipy sparse product; degrees are at most the number of images, so it is cheap).
+
+    Why: a right match is usually seen again through a third image (u-w and v-w both matched),
+    a wrong one that merely fits one pair's epipolar band rarely is. On the difficulty curve's
+    13-view facade (79059 merged matches, checked against the rendered truth) 70 % of the matches
+    closing no triangle are right, 93 % of those closing one, 98 % of those closing three and
+    99.6-100 % of those closing five or more."""
+    from scipy.sparse import coo_matrix
+
+    n, e = graph.num_nodes, len(graph.u)
+    if e == 0:
+        return np.zeros(0, np.int64)
+    adj = coo_matrix((np.ones(2 * e, np.int32), (np.r_[graph.u, graph.v], np.r_[graph.v, graph.u])),
+                     shape=(n, n)).tocsr()
+    adj.data[:] = 1  # a repeated match counts once
+    two_step = (adj @ adj).tocsr()
+    return np.asarray(two_step[graph.u, graph.v], np.int64).reshape(-1)
 
 
 def consistent_tracks(merged: MergedTracks, trusted: Sequence[NDArray[np.bool_]] | None = None,
@@ -381,6 +403,8 @@ def consistent_tracks(merged: MergedTracks, trusted: Sequence[NDArray[np.bool_]]
     n_trusted = np.array([t.sum() for t in trust], np.int64)
     if order_by == "pairs":
         order = np.lexsort((row, pair_of, np.concatenate(dist), -n_trusted[pair_of], ~t_all))
+    elif order_by == "support":
+        order = np.lexsort((row, pair_of, np.concatenate(dist), -triangle_support(g), ~t_all))
     else:
         order = np.lexsort((row, pair_of, np.concatenate(dist), ~t_all))
 
