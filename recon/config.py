@@ -230,12 +230,13 @@ class TracksConfig:
     """Drop the matches that would put two keypoints of one image into one track (greedy, most
     trusted first: `recon.core.tracks.consistent_tracks`); false keeps every merged match."""
 
-    conflict_order: str = field(default="pairs", metadata={"choices": "recon.core.tracks:CONFLICT_ORDERS"})
-    """The consistency check's order of trust after the trusted-first rule: pairs = pair by pair,
-    the pairs with more trusted matches first, ascending descriptor distance within a pair;
-    distance = ascending descriptor distance over all pairs; support = descending triangle support
-    (third-image keypoints matched to both sides) over all pairs (`recon.core.tracks.consistent_tracks`;
-    docs/decisions.md, "Conflict order")."""
+    conflict_order: str = field(default="support", metadata={"choices": "recon.core.tracks:CONFLICT_ORDERS"})
+    """The consistency check's order of trust after the trusted-first rule: support = descending
+    triangle support (keypoints of third images matched to both sides) over all pairs, then
+    ascending descriptor distance; pairs = pair by pair, the pairs with more trusted matches first,
+    ascending descriptor distance within a pair (the order before 2026-12-04); distance = ascending
+    descriptor distance over all pairs (`recon.core.tracks.consistent_tracks`; docs/decisions.md,
+    "Conflict order")."""
 
     trust_px: float = 1.0
     """Distance from the pair's epipolar lines (working px, scaled to full resolution as the verify
