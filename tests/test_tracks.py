@@ -386,3 +386,50 @@ def test_conflict_order_by_support_drops_the_match_no_third_image_confirms():
     assert [m.tolist() for m in by_support.matches] == [[[2, 2]]] + [[[0, 0]]] * 5
     assert by_support.stats.dropped_conflicts == 1
     assert track_stats(_nk(by_support), by_support.pairs, by_support.matches)["inconsistent"] == 0
+
+
+def test_triangle_support_predicts_right_matches_on_a_rendered_facade(rendered_scene):
+    """Nine rendered facade views (19.5 deg apart), OpenCV SIFT once per image, every pair matched
+    (ratio 0.8, a loose 2 px F RANSAC, so wrong matches stay): against the exact transfer through
+    the rendered planes, the matches that third images confirm are right more often than those
+    none confirms (measured: 86.5 % right without a triangle, 98.8 % with three or more), which
+    is why the consistency check admits them first (`conflict_order` = "support")."""
+    import itertools
+    import json
+
+    import cv2
+
+    from recon.core.tracks import match_graph, triangle_support
+    from recon.eval.gt import read_colmap_text
+    from recon.eval.gt_planes import correct_matches, rects_from_scene
+
+    scene = rendered_scene("facade-9x78")
+    rects = rects_from_scene(json.loads((scene / "gt" / "scene.json").read_text()))
+    cams = read_colmap_text(scene / "gt")
+    names = sorted(cams)
+    sift = cv2.SIFT.create()
+    feats = {n: sift.detectAndCompute(cv2.imread(str(scene / "images" / n), cv2.IMREAD_GRAYSCALE), None)
+             for n in names}
+    pairs = []
+    for a, b in itertools.combinations(names, 2):
+        (k0, d0), (k1, d1) = feats[a], feats[b]
+        good = np.array([(m.queryIdx, m.trainIdx, m.distance) for m, n in cv2.BFMatcher().knnMatch(d0, d1, k=2)
+                         if m.distance < 0.8 * n.distance]).reshape(-1, 3)
+        p0, p1 = (np.float32([k.pt for k in kp]) for kp in (k0, k1))
+        if len(good) < 8:
+            continue
+        cv2.setRNGSeed(0)
+        F, mask = cv2.findFundamentalMat(p0[good[:, 0].astype(int)], p1[good[:, 1].astype(int)], cv2.FM_RANSAC, 2.0,
+                                         0.999)
+        if F is not None:
+            good = good[mask.ravel().astype(bool)]
+            pairs.append(PairMatches(a, b, p0, p1, good[:, :2].astype(np.int64), good[:, 2].astype(np.float32)))
+    mt = merge_tracks(pairs, 0.5)  # one detection per image: a keypoint has one position in all its pairs
+    support = triangle_support(match_graph(mt))
+    right = np.concatenate([correct_matches(rects, cams[a], cams[b], mt.keypoints[a][m[:, 0]], mt.keypoints[b][m[:, 1]],
+                                            np.sqrt(3.0)) for (a, b), m in zip(mt.pairs, mt.matches)])
+    assert len(support) == len(right) > 2000
+    alone, confirmed = support == 0, support >= 3
+    assert alone.sum() > 200 and confirmed.sum() > 200
+    assert right[confirmed].mean() > 0.97
+    assert right[confirmed].mean() - right[alone].mean() > 0.06
