@@ -238,11 +238,6 @@ class TracksConfig:
     descriptor distance over all pairs (`recon.core.tracks.consistent_tracks`; docs/decisions.md,
     "Conflict order")."""
 
-    drop_unconfirmed: bool = False
-    """Before the consistency check, drop the matches that are neither within `trust_px` of their
-    pair's fundamental matrix nor confirmed by a third image (`recon.core.tracks.drop_unconfirmed`;
-    measured, not the default: docs/decisions.md, "Conflict order")."""
-
     trust_px: float = 1.0
     """Distance from the pair's epipolar lines (working px, scaled to full resolution as the verify
     stage scales its threshold) within which a match counts as trusted and goes first in the

@@ -433,24 +433,3 @@ def test_triangle_support_predicts_right_matches_on_a_rendered_facade(rendered_s
     assert alone.sum() > 200 and confirmed.sum() > 200
     assert right[confirmed].mean() > 0.97
     assert right[confirmed].mean() - right[alone].mean() > 0.06
-
-
-def test_drop_unconfirmed_keeps_trusted_or_confirmed_matches():
-    """The point a0-b0-c0 matched in three pairs (each match confirmed by the third image), a
-    two-view match a1-b1 and a wrong one a2-b2 in (A, B): with a1-b1 trusted and a2-b2 not, only
-    a2-b2, neither trusted nor confirmed, goes, and the kept trusted masks follow the kept rows."""
-    from recon.core.tracks import drop_unconfirmed
-
-    kp = np.zeros((3, 2), np.float32)
-    mt = MergedTracks({n: kp for n in "ABC"},
-                      [np.array([[0, 0], [1, 1], [2, 2]], np.uint32), np.array([[0, 0]], np.uint32),
-                       np.array([[0, 0]], np.uint32)],
-                      [("A", "B"), ("A", "C"), ("B", "C")],
-                      distances=[np.array([10.0, 20.0, 30.0], np.float32), np.array([5.0], np.float32),
-                                 np.array([6.0], np.float32)])
-    trusted = [np.array([False, True, False]), np.array([False]), np.array([False])]
-    kept, masks = drop_unconfirmed(mt, trusted)
-    assert [m.tolist() for m in kept.matches] == [[[0, 0], [1, 1]], [[0, 0]], [[0, 0]]]
-    assert [m.tolist() for m in masks] == [[False, True], [False], [False]]
-    assert kept.distances[0].tolist() == [10.0, 20.0]
-    assert kept.stats.dropped_unconfirmed == 1

@@ -74,7 +74,6 @@ class MergeStats:
     num_observations: int = 0  # matched keypoint occurrences over all pairs, before merging
     num_keypoints: int = 0  # merged keypoints over all images
     dropped_conflicts: int = 0  # matches that would put two keypoints of one image in a track
-    dropped_unconfirmed: int = 0  # matches neither trusted nor confirmed by a third image (opt-in)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -356,35 +355,6 @@ def triangle_support(graph: MatchGraph) -> NDArray[np.int64]:
     adj.data[:] = 1  # a repeated match counts once
     two_step = (adj @ adj).tocsr()
     return np.asarray(two_step[graph.u, graph.v], np.int64).reshape(-1)
-
-
-def drop_unconfirmed(merged: MergedTracks, trusted: Sequence[NDArray[np.bool_]]
-                     ) -> tuple[MergedTracks, list[NDArray[np.bool_]]]:
-    """(`merged` without the matches that are neither `trusted` nor confirmed by a third image
-    (`triangle_support` 0), the trusted masks of what is kept); the count goes to
-    `stats.dropped_unconfirmed`.
-
-    Why (opt-in, `tracks.drop_unconfirmed`): on the difficulty curve's 13-view facade, against the
-    rendered truth, 28 % of the matches outside 1 px of their pair's fundamental matrix that no
-    third image confirms are right (94 % of the trusted ones, 85 % of the confirmed untrusted
-    ones); COLMAP's 4 px verification keeps them."""
-    support = triangle_support(match_graph(merged))
-    counts = [len(m) for m in merged.matches]
-    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    matches, distances, masks = [], [], []
-    dropped = 0
-    for p, (m, t) in enumerate(zip(merged.matches, trusted, strict=True)):
-        t = np.asarray(t, bool).reshape(-1)
-        keep = t | (support[starts[p]:starts[p + 1]] > 0)
-        dropped += int(len(keep) - keep.sum())
-        matches.append(np.ascontiguousarray(m[keep]))
-        d = merged.distances[p] if merged.distances and len(merged.distances[p]) == len(m) else np.zeros(len(m), np.float32)
-        distances.append(d[keep])
-        masks.append(t[keep])
-    stats = MergeStats(**merged.stats.to_dict())
-    stats.dropped_unconfirmed += dropped
-    stats.num_output_matches -= dropped
-    return MergedTracks(merged.keypoints, matches, list(merged.pairs), stats, distances), masks
 
 
 def consistent_tracks(merged: MergedTracks, trusted: Sequence[NDArray[np.bool_]] | None = None,

@@ -26,7 +26,7 @@ from matching.refine import RefineConfig
 from recon.core.context import Run
 from recon.core.sfm import threshold_scale
 from recon.core.track_refine import refine_tracks
-from recon.core.tracks import PairMatches, consistent_tracks, drop_unconfirmed, epipolar_inliers, merge_tracks, track_stats
+from recon.core.tracks import PairMatches, consistent_tracks, epipolar_inliers, merge_tracks, track_stats
 
 
 class Tracks:
@@ -50,10 +50,8 @@ class Tracks:
         before = track_stats(nk, merged.pairs, merged.matches)["inconsistent_share"]
         if run.cfg.tracks.consistent:
             max_error_px = run.cfg.tracks.trust_px * threshold_scale(run.px_scale())  # as the verify stage
-            trusted = epipolar_inliers(merged, max_error_px, run.cfg.seed)
-            if run.cfg.tracks.drop_unconfirmed:
-                merged, trusted = drop_unconfirmed(merged, trusted)
-            merged = consistent_tracks(merged, trusted, run.cfg.tracks.conflict_order)
+            merged = consistent_tracks(merged, epipolar_inliers(merged, max_error_px, run.cfg.seed),
+                                       run.cfg.tracks.conflict_order)
         refine_stats = None
         if run.cfg.tracks.consistent and run.cfg.tracks.refine and data.store is not None:
             images = {im.name: data.store.image(im.name) for im in scene.images if im.name in merged.keypoints}
