@@ -124,6 +124,9 @@ def test_end_to_end_registers_every_image(first_run):
     # merged keypoints hold one position each: every verified inlier is its own correspondence
     assert all(p["distinct_inliers"] == p["verified_inliers"] for p in data["pairs"])
     assert data["distinct_inliers_per_pair_mean"] == data["inliers_per_pair_mean"] > 0
+    # a third image confirms most inliers of a multi-view scene's pairs, never more than all of them
+    assert all(0 <= p["confirmed_inliers"] <= p["verified_inliers"] for p in data["pairs"])
+    assert sum(p["confirmed_inliers"] for p in data["pairs"]) > 0.3 * sum(p["verified_inliers"] for p in data["pairs"])
     assert not list(out.glob(".*tmp*")) and not (out / "database.db.tmp").exists()
     import open3d as o3d
 

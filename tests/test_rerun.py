@@ -81,7 +81,7 @@ def test_run_recording_has_model_pairs_plots_and_summary(runs):
         assert "LineStrips2D:strips" in cols[f"{base}/matches/inliers"]
         assert "LineStrips2D:strips" in cols[f"{base}/matches/outliers"]
         assert "TextDocument:text" in cols[f"{base}/info"]
-        assert "verified_inliers" in cols[f"{base}/verified"]
+        assert {"verified_inliers", "confirmed_inliers"} <= cols[f"{base}/verified"]
     for k in ("raw_matches", "inliers", "verified_inliers"):
         assert {"Scalars:scalars", "pair"} <= cols[f"/plots/pair/{k}"]
     assert {"Scalars:scalars", "pair"} <= cols["/plots/pair_seconds/seconds"]  # its own plot: not on the counts' axis

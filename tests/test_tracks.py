@@ -386,6 +386,11 @@ def test_conflict_order_by_support_drops_the_match_no_third_image_confirms():
     assert [m.tolist() for m in by_support.matches] == [[[2, 2]]] + [[[0, 0]]] * 5
     assert by_support.stats.dropped_conflicts == 1
     assert track_stats(_nk(by_support), by_support.pairs, by_support.matches)["inconsistent"] == 0
+    from recon.core.tracks import confirmed_counts
+
+    # per pair, the matches that close a triangle: none in (B, D), all in the five others
+    assert confirmed_counts(mt.keypoints, mt.pairs, mt.matches) == [0, 1, 1, 1, 1, 1]
+    assert confirmed_counts(mt.keypoints, mt.pairs[:1], mt.matches[:1]) == [0]
 
 
 def test_triangle_support_predicts_right_matches_on_a_rendered_facade(rendered_scene):

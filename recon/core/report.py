@@ -23,6 +23,9 @@
   output), `merged_matches` (after keypoint merging), `verified_inliers` (COLMAP's two-view
   geometry), `distinct_inliers` (those counted once per distinct pair of keypoint positions:
   COLMAP's SIFT keeps two orientations of one point as two keypoints, `tracks.distinct_correspondences`),
+  `confirmed_inliers` (those whose two keypoints are both matched to one keypoint of a third image
+  in the verified graph, `tracks.triangle_support`: a pair whose inliers no third image confirms
+  in a scene where others are confirmed is one to look at),
   `two_view_config` (COLMAP's two-view model; `config` in version 1), `cached`
   (loaded from the pair cache), `reason`;
 * `skipped`: [{name, reason}] for unreadable, corrupt, duplicate or un-importable images;
@@ -89,6 +92,7 @@ class PairRow:
     merged_matches: int = 0
     verified_inliers: int = 0
     distinct_inliers: int = 0  # verified inliers counted once per distinct pair of positions (tracks.distinct_correspondences)
+    confirmed_inliers: int = 0  # verified inliers that a third image confirms (tracks.triangle_support >= 1)
     two_view_config: str = ""  # COLMAP's TwoViewGeometry configuration, e.g. CALIBRATED, PLANAR
     cached: bool = False
     seconds: float = 0.0

@@ -450,6 +450,18 @@ def consistent_tracks(merged: MergedTracks, trusted: Sequence[NDArray[np.bool_]]
     return MergedTracks(merged.keypoints, matches, list(merged.pairs), stats, distances)
 
 
+def confirmed_counts(keypoints: Mapping[str, NDArray], pairs: Sequence[tuple[str, str]],
+                     matches: Sequence[NDArray]) -> list[int]:
+    """Per pair, how many of its `matches` (K, 2) into `keypoints` a third image confirms
+    (`triangle_support` >= 1 in the graph of all `pairs`): the report's `confirmed_inliers`."""
+    merged = MergedTracks({n: np.asarray(k) for n, k in keypoints.items()},
+                          [np.asarray(m, np.uint32).reshape(-1, 2) for m in matches], list(pairs))
+    support = triangle_support(match_graph(merged))
+    counts = [len(m) for m in merged.matches]
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return [int(np.count_nonzero(support[starts[i]:starts[i + 1]])) for i in range(len(counts))]
+
+
 def connected_components(n: int, edges: NDArray[np.int64]) -> NDArray[np.int64]:
     """Component label of each of n nodes joined by undirected `edges` (E, 2): scipy's
     `csgraph.connected_components` (labels 0..k-1, numbered by their smallest node)."""

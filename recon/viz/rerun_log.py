@@ -663,8 +663,9 @@ class RerunLogger(BaseRunObserver):
         for i, p in enumerate(report.pairs):  # COLMAP's verdict is known only now
             rec.set_time("pair", sequence=i)
             rec.log("plots/pair/verified_inliers", rr.Scalars(float(p.verified_inliers)))
-            rec.log(f"{pair_entity(p.image0, p.image1)}/verified", rr.AnyValues(verified_inliers=int(p.verified_inliers),
-                                                                              two_view_config=p.two_view_config))
+            rec.log(f"{pair_entity(p.image0, p.image1)}/verified",
+                    rr.AnyValues(verified_inliers=int(p.verified_inliers), confirmed_inliers=int(p.confirmed_inliers),
+                                 two_view_config=p.two_view_config))
         rec.reset_time()
         if report.pairs:
             rec.log("plots/bars/verified_inliers", rr.BarChart(np.array([p.verified_inliers for p in report.pairs],

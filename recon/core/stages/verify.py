@@ -26,7 +26,7 @@ from recon.core.report import PairRow, options_dict
 from recon.core.sfm import threshold_scale
 from recon.core.stages.database import Database, remove_db, replace_db
 from recon.core.state import fingerprint
-from recon.core.tracks import distinct_correspondences, track_stats
+from recon.core.tracks import confirmed_counts, distinct_correspondences, track_stats
 
 
 def verify_options(cfg: RunConfig, px_scale: float) -> pycolmap.TwoViewGeometryOptions:
@@ -96,6 +96,9 @@ class Verify:
                 distinct_inliers=distinct_correspondences(d.keypoints[a], d.keypoints[b], inl) if len(inl) else 0,
                 two_view_config=conf, cached=bool(cached), seconds=float(r.timings.get("total", 0.0)), reason=r.reason,
                 path=r.path, path_reason=r.path_reason))
+        confirmed = confirmed_counts(d.keypoints, d.pairs, inliers)
+        for row, n_conf in zip(rows, confirmed, strict=True):
+            row.confirmed_inliers = n_conf
         run.report.pairs = rows
         nk = {n: len(d.keypoints[n]) for n in d.scene.names}
         any_inliers = any(len(m) for m in inliers)
