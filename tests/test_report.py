@@ -31,7 +31,7 @@ def _report(**kw) -> RunReport:
                                  "initial_pair": ["a.png", "b.png"]}],
                     pairs=[PairRow("a.png", "b.png", reference="a.png", best_view={"t": 2.0, "phi": 36.0, "s": 1.0},
                                    raw_matches=np.int64(300), merged_matches=280, verified_inliers=250,
-                                   two_view_config="CALIBRATED", seconds=1.5),
+                                   confirmed_inliers=155, two_view_config="CALIBRATED", seconds=1.5),
                            PairRow("a.png", "c.png", raw_matches=90, merged_matches=85, verified_inliers=60,
                                    cached=True),
                            PairRow("b.png", "c.png", reason="no match")],
@@ -116,6 +116,7 @@ def test_summary_table_shows_the_headline_numbers():
     assert "200 / 220 (median 0.38 px)" in _row(text, "observations re-localised by track refinement")
     assert "2 / 1" in _row(text, "pairs (computed / cached)")
     assert "2 / 3" in _row(text, "pairs verified")
+    assert "50 % (none in 1 pair)" in _row(text, "verified inliers a third image confirms")
     assert "9.5" in _row(text, "match (s)") and "12.2" in _row(text, "total (s)")
     assert "812" in _row(text, "peak memory (MB)")
 

@@ -297,6 +297,12 @@ def summary_table(report: RunReport):
         t.add_row("  of which from match-graph expansion (per round)", " + ".join(map(str, report.pairs_expanded)))
     verified = sum(1 for p in report.pairs if p.verified_inliers > 0)
     t.add_row("pairs verified", f"{verified} / {len(report.pairs)}")
+    inliers = sum(p.verified_inliers for p in report.pairs)
+    if inliers and report.num_images > 2:
+        confirmed = sum(p.confirmed_inliers for p in report.pairs)
+        unconfirmed = sum(1 for p in report.pairs if p.verified_inliers > 0 and p.confirmed_inliers == 0)
+        note = f" (none in {unconfirmed} pair{'s' if unconfirmed > 1 else ''})" if unconfirmed else ""
+        t.add_row("  verified inliers a third image confirms", f"{100 * confirmed / inliers:.0f} %{note}")
     for k, v in report.stages.items():
         t.add_row(f"  {k} (s)", f"{v:.1f}" + (" (reused)" if k in report.stages_reused else ""))
     t.add_row("total (s)", f"{report.seconds_total:.1f}")
