@@ -456,10 +456,9 @@ def confirmed_counts(keypoints: Mapping[str, NDArray], pairs: Sequence[tuple[str
     (`triangle_support` >= 1 in the graph of all `pairs`): the report's `confirmed_inliers`."""
     merged = MergedTracks({n: np.asarray(k) for n, k in keypoints.items()},
                           [np.asarray(m, np.uint32).reshape(-1, 2) for m in matches], list(pairs))
-    support = triangle_support(match_graph(merged))
-    counts = [len(m) for m in merged.matches]
-    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return [int(np.count_nonzero(support[starts[i]:starts[i + 1]])) for i in range(len(counts))]
+    confirmed = triangle_support(match_graph(merged)) > 0  # pair by pair, in `match_graph`'s edge order
+    per_pair = np.split(confirmed, np.cumsum([len(m) for m in merged.matches])[:-1])
+    return [int(np.count_nonzero(c)) for c in per_pair]
 
 
 def connected_components(n: int, edges: NDArray[np.int64]) -> NDArray[np.int64]:
