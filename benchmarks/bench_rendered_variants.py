@@ -6,7 +6,8 @@ Each (preset, size, seed) scene is rendered under OUT/scenes (`scenes.render.ren
 finished render is reused), stock COLMAP runs once per scene (`--stock-presets`, deterministic per
 seed) and `recon run` once per `--variant LABEL=KEY=VALUE[,KEY=VALUE]` (the `--set` syntax;
 `LABEL=` = no override), one after the other and each from an empty output folder, so their
-times are side by side.
+times are side by side. `--textures PHOTO[,PHOTO]` pastes photos on the planes instead of the
+procedural textures (scenes the project did not tune on).
 
     python benchmarks/bench_rendered_variants.py --out /tmp/rv --presets facade-groups \\
         --sizes 640x480,800x600,1024x768 --seeds 0,1,2 \\
@@ -94,22 +95,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated render seeds (the runs use seed 0)")
     ap.add_argument("--variant", action="append", default=[], help="LABEL=KEY=VALUE[,KEY=VALUE] or LABEL=")
     ap.add_argument("--stock-presets", default="default")
+    ap.add_argument("--textures", default="",
+                    help="comma-separated photos pasted on the planes instead of the procedural textures")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
+    textures = [Path(t).expanduser().resolve() for t in args.textures.split(",") if t]
+    for t in textures:
+        if not t.is_file():
+            ap.error(f"--textures: no such file {t}")
 
     variants = parse_variants(args.variant)
     stock_presets = [p for p in args.stock_presets.split(",") if p]
     out = args.out.expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
     config = {"presets": args.presets, "sizes": args.sizes, "seeds": args.seeds, "variants": dict(variants),
-              "stock_presets": stock_presets, "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+              "stock_presets": stock_presets,
+              "textures": [str(t) for t in textures] or "procedural", "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     rows: list[dict[str, Any]] = []
     for preset in args.presets.split(","):
         for size in args.sizes.split(","):
             for seed in (int(s) for s in args.seeds.split(",")):
                 name = f"{preset}-{size}-s{seed}"
                 scene, _ = _scene(out, preset, seed, parse_size(size), lambda m: print(m, file=sys.stderr),
-                                  name=name)
+                                  name=name, textures=textures or None)
                 gt, _, _ = load_gt(scene)
                 for p in stock_presets:
                     m = run_stock_preset(scene, out / "runs" / name / f"stock-{p}", gt, p, 1600, "exhaustive", 0,

@@ -8,7 +8,7 @@ import json
 import pytest
 
 from recon.cli import main
-from recon.eval.difficulty import baseline_table, by_baseline, step_deg
+from recon.eval.difficulty import _scene, baseline_table, by_baseline, step_deg
 
 
 @pytest.mark.slow
@@ -46,6 +46,27 @@ def test_difficulty_sweep_rows_table_plot_and_reuse(tmp_path, capsys):
     assert "reusing" in capsys.readouterr().err
     assert (out / "runs" / "facade-4x80" / "compare.json").stat().st_mtime_ns == mtime
     assert json.loads((out / "difficulty.json").read_text())["rows"] == data["rows"]
+
+
+def test_scene_reuse_checks_textures(tmp_path):
+    """A finished render is reused only for the same seed, size and textures: photo-textured and
+    procedural renders of one preset under one name replace each other, and the images differ."""
+    import cv2
+    import numpy as np
+
+    photo = tmp_path / "photo.png"
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(photo), cv2.GaussianBlur(rng.integers(0, 255, (240, 320), dtype=np.uint8), (0, 0), 1.5))
+    size = (160, 120)
+    d, made = _scene(tmp_path, "corner-wide", 0, size, lambda m: None, name="s")
+    assert made
+    procedural = cv2.imread(str(d / "images" / "view_00.png"))
+    assert _scene(tmp_path, "corner-wide", 0, size, lambda m: None, name="s") == (d, False)
+    assert _scene(tmp_path, "corner-wide", 0, size, lambda m: None, name="s", textures=[photo]) == (d, True)
+    textured = cv2.imread(str(d / "images" / "view_00.png"))
+    assert procedural.shape == textured.shape and np.abs(procedural.astype(int) - textured).mean() > 5
+    assert _scene(tmp_path, "corner-wide", 0, size, lambda m: None, name="s", textures=[photo]) == (d, False)
+    assert _scene(tmp_path, "corner-wide", 0, size, lambda m: None, name="s") == (d, True)
 
 
 def test_difficulty_bad_options_exit_2(tmp_path):

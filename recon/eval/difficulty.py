@@ -50,23 +50,26 @@ def step_deg(num_views: int, max_azimuth_deg: float) -> float:
 
 
 def _scene(out: Path, preset: str, seed: int, image_size: tuple[int, int] | None, log: Log,
-           name: str | None = None) -> tuple[Path, bool]:
+           name: str | None = None, textures: list[Path] | None = None) -> tuple[Path, bool]:
     """(scene folder OUT/scenes/<name, default the preset>, whether it was (re-)rendered now:
-    earlier runs on it are then stale)."""
+    earlier runs on it are then stale). `textures`: photos pasted on the planes (None: the
+    procedural textures); a finished render is reused only with the same seed, size and textures."""
     from scenes.render import render_scene
 
     d = out / "scenes" / (name or preset)
     meta_path = d / "gt" / "scene.json"
+    want_textures = [str(t) for t in textures] if textures else "procedural"
     if meta_path.is_file():
         try:
             meta = json.loads(meta_path.read_text(encoding="utf-8"))
-            same = meta.get("seed") == seed and (image_size is None or list(image_size) == meta.get("image_size"))
+            same = (meta.get("seed") == seed and (image_size is None or list(image_size) == meta.get("image_size"))
+                    and meta.get("textures", "procedural") == want_textures)
         except (OSError, ValueError):
             same = False
         if same and (d / "images").is_dir():
             return d, False
     log(f"rendering {preset} -> {d}")
-    render_scene(d, preset, seed=seed, image_size=image_size, overwrite=True)
+    render_scene(d, preset, textures=textures, seed=seed, image_size=image_size, overwrite=True)
     return d, True
 
 
