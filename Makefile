@@ -30,9 +30,9 @@ demo: $(STAMP)
 test: lint
 	$(BIN)/python -m pytest -p no:dash -q
 
-## ruff (style, imports, bugbear, pyupgrade) and mypy on the library packages, as CI runs them.
+## ruff (style, imports, bugbear, pyupgrade) on the packages, benchmarks and tests, and mypy on the library packages, as CI runs them.
 lint: $(STAMP)
-	$(BIN)/ruff check matching recon
+	$(BIN)/ruff check matching recon scenes benchmarks tests
 	$(BIN)/mypy
 
 ## Everything but the end-to-end runs (tests marked slow, see tests/conftest.py): under a minute.

@@ -139,7 +139,7 @@ def run_scene(name: str, scene_dir: Path, truth_roots: list[Path], ks: list[int]
         g = R.global_descriptors(descs, cfg)
         index[mname] = (g @ g.T, time.perf_counter() - t)
     for k in ks:
-        for mname, descs, cfg, t_feat in methods:
+        for mname, _descs, _cfg, t_feat in methods:
             t = time.perf_counter()
             sim, t_index = index[mname]
             pairs = R.top_k_pairs(names, sim, k)
@@ -168,7 +168,8 @@ def _missed(truth: set[tuple[str, str]], pairs: list[tuple[str, str]], shown: in
 
 def _row_line(r: dict) -> str:
     return (f"{r['scene']:<14} {r['N']:>3} {r['exhaustive_pairs']:>5} {r['verified_pairs']:>5}  {r['method']:<11}"
-            f" {r['K']:>3} {r['proposed']:>5} {100 * r['recall']:>6.1f} % {r['strong_pairs']:>5} {100 * r['recall_strong']:>6.1f} %"
+            f" {r['K']:>3} {r['proposed']:>5} {100 * r['recall']:>6.1f} %"
+            f" {r['strong_pairs']:>5} {100 * r['recall_strong']:>6.1f} %"
             f" {r['seconds_features']:>7.1f} {r['seconds_rank']:>6.2f}")
 
 

@@ -35,6 +35,7 @@ import cv2  # noqa: F401  (first: importing pycolmap before cv2 made cv2.imwrite
 import pytest
 
 from shared_paths import REPO, SHARED_DATA  # noqa: E402, F401  (re-exported for fixtures)
+
 SHARED_FIXTURES = ("shared_data", "graf_dir", "evd_dir", "scene_dir")
 SMALL = (480, 360)  # image size (px) of the small rendered scenes: seconds per run, not minutes
 

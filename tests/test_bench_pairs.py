@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from shared_paths import SHARED_DATA as DATA
 from matching.memory import PeakRss
 from recon.eval.bench_pairs import discover_pairs, ratio_line, summarize, write_json
+from shared_paths import SHARED_DATA as DATA
 
 needs_data = pytest.mark.requires_shared("oxford/graf/img1.png", "oxford/graf/img2.png", "oxford/graf/H1to2p")
 

@@ -15,8 +15,7 @@ from pathlib import Path
 import pytest
 
 from recon.cli import main
-from recon.config import (DEFAULT_MAX_SIZE, PRESETS, MatchConfig, RunConfig, build_run_config, field_docs, preset,
-                          run_options)
+from recon.config import DEFAULT_MAX_SIZE, PRESETS, MatchConfig, RunConfig, build_run_config, field_docs, preset, run_options
 from recon.core.report import RunReport
 from recon.core.stages.match import make_matcher
 from recon.errors import UserError

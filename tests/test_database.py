@@ -10,9 +10,18 @@ import numpy as np
 import pycolmap
 import pytest
 
-from recon.core.database import (build_database, database_is_sound, database_problem, estimate_database_bytes,
-                                 import_scene_images, read_keypoints_opencv, read_verified, require_free_space,
-                                 two_view_options, write_keypoints_and_matches)
+from recon.core.database import (
+    build_database,
+    database_is_sound,
+    database_problem,
+    estimate_database_bytes,
+    import_scene_images,
+    read_keypoints_opencv,
+    read_verified,
+    require_free_space,
+    two_view_options,
+    write_keypoints_and_matches,
+)
 
 
 def _write_images(d: Path, sizes) -> list[str]:
@@ -98,7 +107,7 @@ def test_build_is_atomic_and_verifies(tmp_path):
 
     # a failing build leaves the existing database untouched and no temp file behind
     before = db_path.read_bytes()
-    with pytest.raises(Exception):
+    with pytest.raises(RuntimeError, match="boom"):
         build_database(db_path, tmp_path / "images", names, "auto", {}, [], [], two_view_options(),
                        on_stage=lambda s: (_ for _ in ()).throw(RuntimeError("boom")) if s == "write" else None)
     assert db_path.read_bytes() == before

@@ -8,8 +8,15 @@ import cv2
 import numpy as np
 
 from recon.eval.gt import GtCamera, read_colmap_text
-from recon.eval.gt_planes import (Rect, correct_counts, correct_error_median, correct_matches, rects_from_scene, transfer,
-                                  transfer_errors)
+from recon.eval.gt_planes import (
+    Rect,
+    correct_counts,
+    correct_error_median,
+    correct_matches,
+    rects_from_scene,
+    transfer,
+    transfer_errors,
+)
 from scenes.render import centred_K, look_at_pose
 
 

@@ -20,11 +20,11 @@ import numpy as np
 import pycolmap
 import pytest
 
-from shared_paths import SHARED_DATA as DATA
 from recon.cli import main
 from recon.core.observer import BaseRunObserver
 from recon.core.pipeline import RunConfig, run_scene
 from scenes.render import render_scene
+from shared_paths import SHARED_DATA as DATA
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = (480, 360)

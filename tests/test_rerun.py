@@ -11,8 +11,7 @@ import pytest
 pytest.importorskip("rerun")
 
 from recon.cli import main  # noqa: E402
-from recon.viz.rerun_log import (camera_entity, coarse_grid, heatmap_image, pair_entity,  # noqa: E402
-                             parse_sink)
+from recon.viz.rerun_log import camera_entity, coarse_grid, heatmap_image, pair_entity, parse_sink  # noqa: E402
 
 
 def _columns(rrd: Path) -> dict[str, set[str]]:

@@ -22,7 +22,8 @@ def _img(seed: int, w: int = 120, h: int = 90) -> np.ndarray:
 
 
 def _write(path: Path, img: np.ndarray) -> None:
-    ok, buf = cv2.imencode(path.suffix.lower() if path.suffix.lower() in (".png", ".jpg", ".tif", ".tiff", ".jpeg") else ".png", img)
+    ext = path.suffix.lower()
+    ok, buf = cv2.imencode(ext if ext in (".png", ".jpg", ".tif", ".tiff", ".jpeg") else ".png", img)
     assert ok
     path.write_bytes(buf.tobytes())
 

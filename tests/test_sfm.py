@@ -14,10 +14,23 @@ import numpy as np
 import pycolmap
 import pytest
 
-from recon.core.sfm import (PP_SIGMA_MAX, RETRY_MAX_IMAGES, FinalBaConfig, GrowthStep, SfmResult,
-                            connected_images, final_bundle_adjustment, map_with_retries, mapping_options,
-                            model_stats, options_summary, registered_names, run_incremental, write_model_atomic,
-                            write_points_ply)
+from recon.core.sfm import (
+    PP_SIGMA_MAX,
+    RETRY_MAX_IMAGES,
+    FinalBaConfig,
+    GrowthStep,
+    SfmResult,
+    connected_images,
+    final_bundle_adjustment,
+    map_with_retries,
+    mapping_options,
+    model_stats,
+    options_summary,
+    registered_names,
+    run_incremental,
+    write_model_atomic,
+    write_points_ply,
+)
 from recon.eval.evaluate import evaluate_model, poses_from_estimate
 
 

@@ -11,10 +11,10 @@ import numpy as np
 import pycolmap
 import pytest
 
-from shared_paths import SHARED_DATA as DATA
 from recon.eval.evaluate import evaluate_model
 from recon.eval.gt import find_gt
 from recon.eval.stock import run_stock
+from shared_paths import SHARED_DATA as DATA
 
 FOUNTAIN = DATA / "scenes" / "fountain_P11"
 needs_fountain = pytest.mark.requires_shared("scenes/fountain_P11/images/0000.jpg", "scenes/fountain_P11/gt/cameras")

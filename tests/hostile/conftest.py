@@ -19,6 +19,7 @@ import pytest
 
 from hostile_tools import FAST, PRESET, SIZE, check, recon
 
+
 # scenes -------------------------------------------------------------------------------------------
 @pytest.fixture(scope="session")
 def rendered(tmp_path_factory) -> Path:
