@@ -15,7 +15,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from .adaptive import estimate_viewpoint, nearest_views, plan_pair
+from .adaptive import PathPlan, estimate_viewpoint, nearest_views, plan_pair
 from .config import MatcherConfig
 from .context import Attempt, MatchContext
 from .escalation import should_escalate
@@ -78,12 +78,18 @@ class ExtraAffineMatcher:
                 decision = decide_reference(ctx)
         else:  # nothing is simulated: no reference to decide (nor its SIFT at the views' contrast to compute)
             decision = ReferenceDecision(None, math.nan, math.nan, "originals only: no view simulated")
-        path, path_reason = "full", "adaptive off -> full grid"
+        path, path_reason, planned = "full", "adaptive off -> full grid", ""
         best: Attempt | None = None
         if not cfg.simulate:
             best, path, path_reason = originals_only(ctx, decision)
-        elif cfg.adaptive:
-            best, path, path_reason = adaptive_paths(ctx, decision)
+        else:
+            # what the originals' evidence says, recorded whether or not the adaptive paths act on it
+            ref, plan = plan_from_decision(ctx, decision)
+            planned = plan.path
+            if cfg.adaptive:
+                best, path, path_reason = adaptive_paths(ctx, decision, ref, plan)
+            else:
+                path_reason = f"adaptive off -> full grid (the originals' evidence: {plan.reason})"
         if best is None:
             with ctx.timed("coarse"):
                 ctx.reference = settle_reference(decision, ctx.coarse_for, ctx.size(0), cfg.reference,
@@ -106,7 +112,7 @@ class ExtraAffineMatcher:
             for step in FINISHING:
                 if step.applies(ctx, best, result):
                     result = step.run(ctx, best, result)
-        result.path, result.path_reason = path, path_reason
+        result.path, result.path_reason, result.planned_path = path, path_reason, planned
         ctx.timings["total"] = time.perf_counter() - t_start
         result.timings = ctx.timings
         return self.enough_or_empty(result)
@@ -159,24 +165,32 @@ def originals_only(ctx: MatchContext, decision: ReferenceDecision) -> tuple[Atte
                              "view simulation left to the scene's second pass")
 
 
-def adaptive_paths(ctx: MatchContext, decision: ReferenceDecision) -> tuple[Attempt | None, str, str]:
-    """The adaptive paths (`matching.adaptive`), cheapest first: (the accepted attempt or None
-    when the full path must run, the path taken, why). An attempt that verifies fewer than
-    `escalation.min_inliers` matches falls through to the next path; the best one so far is
-    kept on `ctx.fallen_through` so the full path only replaces it when it does better."""
+def plan_from_decision(ctx: MatchContext, decision: ReferenceDecision) -> tuple[int | None, PathPlan]:
+    """(the image the evidence would simulate or None, the cheapest path the originals' evidence
+    supports, `adaptive.plan_pair`). An undecided reference with enough inliers for a targeted try
+    takes the larger image by the originals' homography (its scale decides)."""
     cfg = ctx.cfg
-    enough = cfg.escalation.min_inliers
     estimate = None
     ref = decision.reference
     if (ref is None and decision.H_1_from_0 is not None and decision.inliers0 is not None
             and decision.inliers >= cfg.paths.targeted_min_inliers):
-        # too few inliers to settle the reference as such, enough for a targeted try: its scale decides
         scale = scale_1_from_0(decision.H_1_from_0, ctx.size(0))
         larger = larger_image(scale, cfg.reference.scale_tolerance) if math.isfinite(scale) else None
         ref = 0 if larger is None else larger
     if ref is not None and decision.H_1_from_0 is not None and decision.inliers0 is not None:
         estimate = estimate_viewpoint(decision.H_1_from_0, decision.inliers0, ref, ctx.size(ref))
-    plan = plan_pair(estimate, cfg.paths, decision.reason if ref is None else "")
+    return ref, plan_pair(estimate, cfg.paths, decision.reason if ref is None else "")
+
+
+def adaptive_paths(ctx: MatchContext, decision: ReferenceDecision, ref: int | None,
+                   plan: PathPlan) -> tuple[Attempt | None, str, str]:
+    """The adaptive paths (`matching.adaptive`), cheapest first, from `plan_from_decision`'s
+    (`ref`, `plan`): (the accepted attempt or None when the full path must run, the path taken,
+    why). An attempt that verifies fewer than
+    `escalation.min_inliers` matches falls through to the next path; the best one so far is
+    kept on `ctx.fallen_through` so the full path only replaces it when it does better."""
+    cfg = ctx.cfg
+    enough = cfg.escalation.min_inliers
     reason = plan.reason
     if plan.path == "originals" and ref is not None:
         ctx.reference = ref

@@ -78,6 +78,8 @@ class PairResult:
     reason: str = ""  # why the result is empty or weak; "" when fine
     path: str = ""  # "originals" / "targeted" / "full" (adaptive), "deferred" (simulate=False, weak); "" other methods
     path_reason: str = ""  # why that path (the evidence from the originals and any fall-through)
+    planned_path: str = ""  # the path the originals' evidence points to (`adaptive.plan_pair`), adaptive or
+    # not (with adaptive paths `path` differs where an attempt fell through); "" when nothing is simulated
     verified: int = -1  # matches its own check verified (H / F inliers) before the finishing steps; -1: not counted
     timings: dict[str, float] = field(default_factory=dict)
     image_sizes: tuple[tuple[int, int], tuple[int, int]] | None = None  # ((w0, h0), (w1, h1))
@@ -114,8 +116,8 @@ class PairResult:
             reference=ref, reference_reason=self.reference_reason, f0=self.f1, f1=self.f0,
             best_views=self.best_views, coarse_scores=self.coarse_scores, H_1_from_0=H,
             inlier_mask=self.inlier_mask, escalation=self.escalation, reason=self.reason,
-            path=self.path, path_reason=self.path_reason, verified=self.verified, timings=dict(self.timings),
-            image_sizes=sizes,
+            path=self.path, path_reason=self.path_reason, planned_path=self.planned_path, verified=self.verified,
+            timings=dict(self.timings), image_sizes=sizes,
         )
 
     def without_matches(self, reason: str) -> PairResult:
@@ -124,7 +126,8 @@ class PairResult:
         return PairResult.empty(self.method, reason, reference=self.reference, reference_reason=self.reference_reason,
                                 f0=self.f0, f1=self.f1, best_views=self.best_views, coarse_scores=self.coarse_scores,
                                 escalation=self.escalation, timings=self.timings, image_sizes=self.image_sizes,
-                                path=self.path, path_reason=self.path_reason, verified=self.verified)
+                                path=self.path, path_reason=self.path_reason, planned_path=self.planned_path,
+                                verified=self.verified)
 
     @staticmethod
     def empty(method: str, reason: str, **kw) -> PairResult:

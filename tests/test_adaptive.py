@@ -123,6 +123,10 @@ def test_easy_rendered_pair_takes_the_originals_path_and_adaptive_off_is_the_ful
     r_off = ExtraAffineMatcher(off).match(store, a, b)
     legacy = legacy_match(ExtraAffineMatcher(off), store, a, b)
     assert r_off.path == "full" and len(r_off.coarse_scores) == 45
+    # the evidence is recorded whether or not the adaptive paths act on it
+    assert r.planned_path == r_off.planned_path == "originals"
+    assert r_off.path_reason.startswith("adaptive off -> full grid (the originals' evidence: ")
+    assert r_off.path_reason.endswith("-> originals)"), r_off.path_reason
     np.testing.assert_array_equal(r_off.matches, legacy.matches)
     np.testing.assert_array_equal(r_off.kpts0, legacy.kpts0)
     np.testing.assert_array_equal(r_off.kpts1, legacy.kpts1)
@@ -138,7 +142,7 @@ def test_large_tilt_rendered_pair_simulates(facade_extreme_scene):
     a, b = "view_00.png", "view_01.png"  # grazing views of the facade: the originals barely match
     store = _store(facade_extreme_scene, a, b)
     r = ExtraAffineMatcher(replace(MatcherConfig.multiview(), adaptive=True)).match(store, a, b)  # --preset adaptive
-    assert r.path == "full", r.path_reason
+    assert r.path == r.planned_path == "full", r.path_reason
     assert "mutual SIFT matches" in r.path_reason
     assert len(r.coarse_scores) == 45
     assert r.best_view is not None and r.best_view.t >= 2.0
@@ -158,7 +162,7 @@ def test_graf_easy_pair_takes_originals_and_graf_1_5_the_simulated_path(shared_d
     for k in (2, 3, 5):
         r = m.match(store, "img1", f"img{k}")
         rep = precision(r, read_homography(g / f"H1to{k}p"), math.sqrt(3.0))
-        assert r.path == expected[k], (k, r.path_reason)
+        assert r.path == r.planned_path == expected[k], (k, r.path_reason)
         assert rep.points > paper_points[k], (k, rep.points)
         if k > 2:
             assert r.best_view is not None and r.best_view.t > 1.0
@@ -213,15 +217,16 @@ def test_path_reaches_the_rerun_text_and_the_pair_cache(tmp_path):
     from recon.core.paircache import load_pair_result, save_pair_result
     from recon.viz.rerun_log import pair_markdown
 
-    r = PairResult.empty("extra-affine", "", path="originals",
+    r = PairResult.empty("extra-affine", "", path="originals", planned_path="originals",
                          path_reason="412 original inliers over 63 % of the image, tilt 1.20 -> originals")
     assert "| path | originals (412 original inliers over 63 % of the image, tilt 1.20 -> originals) |" in \
         pair_markdown("a.jpg", "b.jpg", r, cached=False)
     save_pair_result(tmp_path / "p.npz", r)
     back = load_pair_result(tmp_path / "p.npz")
-    assert back is not None and (back.path, back.path_reason) == (r.path, r.path_reason)
+    assert back is not None and (back.path, back.path_reason, back.planned_path) == (r.path, r.path_reason, "originals")
     sw = r.swapped()
-    assert (sw.path, sw.path_reason) == (r.path, r.path_reason)
+    assert (sw.path, sw.path_reason, sw.planned_path) == (r.path, r.path_reason, r.planned_path)
+    assert r.without_matches("x").planned_path == "originals"
 
 
 def test_recon_run_keeps_the_full_grid_unless_asked():

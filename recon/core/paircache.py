@@ -51,8 +51,8 @@ def result_to_full_res(r: PairResult, im0: SceneImage, im1: SceneImage) -> PairR
         distances=np.asarray(r.distances, np.float32).reshape(-1), reference=r.reference,
         reference_reason=r.reference_reason, f0=r.f0, f1=r.f1, best_views=list(r.best_views),
         coarse_scores=r.coarse_scores, H_1_from_0=H, inlier_mask=r.inlier_mask, escalation=r.escalation,
-        reason=r.reason, path=r.path, path_reason=r.path_reason, verified=r.verified, timings=dict(r.timings),
-        image_sizes=((im0.width, im0.height), (im1.width, im1.height)),
+        reason=r.reason, path=r.path, path_reason=r.path_reason, planned_path=r.planned_path, verified=r.verified,
+        timings=dict(r.timings), image_sizes=((im0.width, im0.height), (im1.width, im1.height)),
     )
 
 
@@ -64,7 +64,7 @@ def save_pair_result(path: Path, r: PairResult) -> None:
                        for c in r.coarse_scores], np.float64).reshape(-1, 6)
     meta = dict(method=r.method, reference=r.reference, reference_reason=r.reference_reason,
                 f0=r.f0, f1=r.f1, escalation=r.escalation, reason=r.reason, timings=r.timings,
-                path=r.path, path_reason=r.path_reason, verified=r.verified,
+                path=r.path, path_reason=r.path_reason, planned_path=r.planned_path, verified=r.verified,
                 image_sizes=r.image_sizes, version=PAIR_CACHE_VERSION)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
     with replaced_atomically(path, tmp):
@@ -98,7 +98,7 @@ def load_pair_result(path: Path) -> PairResult | None:
                 inlier_mask=z["inlier_mask"] if bool(z["has_mask"]) else None,
                 escalation=meta.get("escalation", ""), reason=meta.get("reason", ""),
                 path=meta.get("path", ""), path_reason=meta.get("path_reason", ""),
-                verified=int(meta.get("verified", -1)),
+                planned_path=meta.get("planned_path", ""), verified=int(meta.get("verified", -1)),
                 timings=meta.get("timings", {}),
                 image_sizes=tuple(tuple(s) for s in sizes) if sizes else None,  # type: ignore[arg-type]
             )

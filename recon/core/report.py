@@ -99,6 +99,7 @@ class PairRow:
     reason: str = ""
     path: str = ""  # the matcher's adaptive path: "originals", "targeted" or "full" (matching.adaptive)
     path_reason: str = ""  # why that path
+    planned_path: str = ""  # the path the originals' evidence points to (matching.adaptive.plan_pair), adaptive or not
 
 
 @dataclass
