@@ -186,9 +186,9 @@ def adaptive_paths(ctx: MatchContext, decision: ReferenceDecision, ref: int | No
                    plan: PathPlan) -> tuple[Attempt | None, str, str]:
     """The adaptive paths (`matching.adaptive`), cheapest first, from `plan_from_decision`'s
     (`ref`, `plan`): (the accepted attempt or None when the full path must run, the path taken,
-    why). An attempt that verifies fewer than
-    `escalation.min_inliers` matches falls through to the next path; the best one so far is
-    kept on `ctx.fallen_through` so the full path only replaces it when it does better."""
+    why). An attempt that verifies fewer than `escalation.min_inliers` matches falls through to
+    the next path; the best one so far is kept on `ctx.fallen_through` so the full path only
+    replaces it when it does better."""
     cfg = ctx.cfg
     enough = cfg.escalation.min_inliers
     reason = plan.reason
