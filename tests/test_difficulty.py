@@ -73,6 +73,8 @@ def test_difficulty_bad_options_exit_2(tmp_path):
     assert main(["bench", "difficulty", "--out", str(tmp_path), "--views", "2"]) == 2
     assert main(["bench", "difficulty", "--out", str(tmp_path), "--views", "a,b"]) == 2
     assert main(["bench", "difficulty", "--out", str(tmp_path), "--image-size", "10x10"]) == 2
+    assert main(["bench", "difficulty", "--out", str(tmp_path / "t"), "--texture", str(tmp_path / "no.jpg")]) == 2
+    assert not (tmp_path / "t").exists()
     assert not list(tmp_path.rglob("*.png"))
 
 

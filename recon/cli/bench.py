@@ -227,6 +227,8 @@ def difficulty_cmd(
     stock_presets_: Annotated[str, stock_presets_option()] = "default,high",
     image_size: Annotated[Optional[str], typer.Option("--image-size", help="Rendered size WxH (default: the "
                                                                            "preset's 800x600).")] = None,
+    texture: Annotated[Optional[list[Path]], typer.Option("--texture", help="Photo(s) to texture the facade's "
+                                                          "planes with (repeatable; default: procedural).")] = None,
     json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
                                                      help="Also copy the rows to this JSON file.")] = None,
     seed: Annotated[int, seed_option()] = 0,
@@ -251,10 +253,14 @@ def difficulty_cmd(
         raise UserError(f"--views {views!r}: expected numbers of views, e.g. 3,4,5") from None
     size = parse_image_size(image_size)
     presets = stock_presets(stock_presets_)
+    textures = [t.expanduser().resolve() for t in texture or []]
+    for t in textures:
+        if not t.is_file():
+            raise UserError(f"--texture {t}: no such file")
     err = Console(stderr=True, highlight=False)
     with claim_output(out, "bench", legacy=("difficulty.json",)) as out:
         data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]
-                              recompute=recompute, workers=workers, progress=progress,
+                              recompute=recompute, workers=workers, progress=progress, textures=textures or None,
                               log=lambda m: err.print(f"recon: {m}", markup=False))
     console = Console(width=None if sys.stdout.isatty() else 160)
     console.print(difficulty_table(data))

@@ -123,8 +123,9 @@ def by_baseline(pairs: Sequence[dict[str, Any]], step: float,
 def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_azimuth_deg: float = DEFAULT_MAX_AZIMUTH,
                    presets: Sequence[str] = DEFAULT_PRESETS, seed: int = 0, image_size: tuple[int, int] | None = None,
                    max_size: int = DEFAULT_MAX_SIZE, recompute: bool = False, log: Log = lambda _m: None,
-                   workers: int = 0, progress: bool = False) -> dict[str, Any]:
-    """Render and compare every sweep scene; returns {"config", "rows"} (also OUT/difficulty.json)."""
+                   workers: int = 0, progress: bool = False, textures: Sequence[Path] | None = None) -> dict[str, Any]:
+    """Render and compare every sweep scene; returns {"config", "rows"} (also OUT/difficulty.json).
+    `textures`: photos pasted on the facade's planes instead of the procedural textures."""
     from recon.errors import UserError
     from scenes.presets import get_preset
 
@@ -137,11 +138,12 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
     out.mkdir(parents=True, exist_ok=True)
     config = {"views": views, "max_azimuth_deg": max_azimuth_deg, "presets": list(presets), "seed": seed,
               "image_size": list(image_size) if image_size else list(get_preset(f"facade-3x{max_azimuth_deg:g}").image_size),
-              "max_size": max_size, "cpu_count": os.cpu_count(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+              "max_size": max_size, "textures": [str(t) for t in textures] if textures else "procedural",
+              "cpu_count": os.cpu_count(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     rows: list[dict[str, Any]] = []
     for n in views:
         preset = f"facade-{n}x{max_azimuth_deg:g}"
-        scene, rendered = _scene(out, preset, seed, image_size, log)
+        scene, rendered = _scene(out, preset, seed, image_size, log, textures=list(textures) if textures else None)
         run_dir = out / "runs" / preset
         res = None
         cj = run_dir / "compare.json"
