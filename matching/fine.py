@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .adaptive import tilt_plane_point
 from .features import DetectorConfig, Features
 from .matching_utils import mutual_matches, ratio_match, unique_train
 from .store import FeatureStore
@@ -147,19 +148,26 @@ class FineMatches:
     per_view: dict[str, int]
 
 
-def select_fine_views(ranked: list[CoarseScore], k: int, include_original: bool = False) -> list[ViewParams]:
+def select_fine_views(ranked: list[CoarseScore], k: int, include_original: bool = False,
+                      min_distance: float = 0.0) -> list[ViewParams]:
     """The `k` best distinct views for the fine stage, best first (+ the original if asked).
 
     At t = 1 a view is the original rotated by phi (and zoomed by s = 1): SIFT is rotation
     invariant, so every t = 1 view is replaced by the original itself, whose SIFT is already
     cached, and counted once. `include_original` adds the original when the top `k` lack it:
     its keypoints are the same in every pair of the image (tracks longer than two views) and
-    cover the surfaces the best views do not rectify.
+    cover the surfaces the best views do not rectify. With `min_distance` > 0 a view closer than
+    that to a chosen one in the tilt plane (`adaptive.tilt_plane_point`) is skipped
+    (`MatcherConfig.fine_min_view_distance`).
     """
     identity = ViewParams(1.0, 0.0, 1.0)
     out: list[ViewParams] = []
     for c in ranked:
         v = identity if c.view.t == 1.0 else c.view
+        if min_distance > 0 and any(
+                float(np.linalg.norm(tilt_plane_point(v.t, v.phi) - tilt_plane_point(u.t, u.phi))) < min_distance
+                for u in out):
+            continue
         if v not in out:
             out.append(v)
         if len(out) == k:

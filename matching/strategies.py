@@ -41,7 +41,7 @@ def fine_attempt(ctx: MatchContext, ref: int, top_k: int, label: str) -> Attempt
     with `fine_include_original`), and how many of the fused matches verify."""
     cfg = ctx.cfg
     scores = ctx.coarse_for(ref)
-    views = select_fine_views(rank_views(scores), top_k, cfg.fine_include_original)
+    views = select_fine_views(rank_views(scores), top_k, cfg.fine_include_original, cfg.fine_min_view_distance)
     fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.fine, ctx.pool, cfg.seed)
     n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
     return Attempt(label=label, reference=ref, fine=fm, views=views, coarse=scores, verified=n_verified)
@@ -66,7 +66,8 @@ def targeted_attempt(ctx: MatchContext, ref: int, views: list[ViewParams]) -> At
     cfg = ctx.cfg
     scores = coarse_search(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.coarse, ctx.pool, cfg.seed)
     ctx.targeted_coarse_inliers = max((c.inliers for c in scores), default=0)
-    fine_views = select_fine_views(rank_views(scores), cfg.fine_top_k, cfg.fine_include_original)
+    fine_views = select_fine_views(rank_views(scores), cfg.fine_top_k, cfg.fine_include_original,
+                                   cfg.fine_min_view_distance)
     fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], fine_views, cfg.fine, ctx.pool, cfg.seed)
     n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
     return Attempt(label="", reference=ref, fine=fm, views=fine_views, coarse=scores, verified=n_verified)

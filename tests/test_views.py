@@ -92,3 +92,19 @@ def test_fine_views_skip_rotation_duplicates_and_can_add_the_original():
     tilted = ranked[2:]
     assert select_fine_views(tilted, 1, include_original=True) == [ViewParams(2.0, 36.0, 1.0),
                                                                    ViewParams(1.0, 0.0, 1.0)]
+
+
+def test_fine_views_at_a_minimum_distance_skip_the_same_peak_seen_twice():
+    """(5.66, 0) and (5.66, 178.2) are one view (phi has period 180): with a minimum tilt-plane
+    distance the second fine view is the next distinct peak instead."""
+    from matching.fine import select_fine_views
+    from matching.types import CoarseScore
+
+    def score(t, phi, n):
+        return CoarseScore(ViewParams(t, phi, 1.0), n, n, float(n))
+
+    ranked = [score(5.656854, 0.0, 90), score(5.656854, 178.19, 85), score(4.0, 0.0, 80), score(2.0, 90.0, 40)]
+    assert select_fine_views(ranked, 2) == [ranked[0].view, ranked[1].view]
+    assert select_fine_views(ranked, 2, min_distance=0.5) == [ranked[0].view, ranked[3].view]
+    assert select_fine_views(ranked, 3, min_distance=0.2) == [ranked[0].view, ranked[2].view, ranked[3].view]
+    assert select_fine_views(ranked[:2], 2, min_distance=0.5) == [ranked[0].view]  # nothing else far enough
