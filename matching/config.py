@@ -69,9 +69,10 @@ class MatcherConfig:
     """(>= 0) Fine views at least this far apart in the tilt plane (`adaptive.tilt_plane_point`:
     radius log t, angle 2 phi), so the fused views rectify different surfaces instead of one peak
     twice (e.g. (5.66, 0°) and (5.66, 178°) are the same view); 0 = the best `fine_top_k` as
-    ranked. Opt-in, measured on one scene so far: a photo-textured facade at 78° steps, where
-    every neighbour pair's two best views rectified the ground and COLMAP found no initial pair;
-    1.0 registered 3 of 3 at 0.030° (docs/decisions.md, "Distinct fine views")."""
+    ranked. Opt-in: on a photo-textured facade at 78° steps, where every neighbour pair's two
+    best views rectified the ground and COLMAP found no initial pair, 1.0 registered 3 of 3 at
+    0.030°; on the procedural difficulty curve it adds verified inliers at every step but raises
+    the 78° step's rotation error tenfold (docs/decisions.md, "Distinct fine views")."""
     fine_include_original: bool = False
     """Also fine-match the unwarped originals (multi-view: keypoints shared across pairs form long
     tracks, and matches cover the surfaces the best view does not rectify)."""
