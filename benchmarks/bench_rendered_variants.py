@@ -37,6 +37,7 @@ import recon  # noqa: F401  (cv2 before pycolmap)
 from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import load_gt, run_stock_preset
 from recon.eval.difficulty import _scene
+from scenes.render import textures_label
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     config = {"presets": args.presets, "sizes": args.sizes, "seeds": args.seeds, "variants": dict(variants),
               "stock_presets": stock_presets,
-              "textures": [str(t) for t in textures] or "procedural", "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+              "textures": textures_label(textures), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     rows: list[dict[str, Any]] = []
     for preset in args.presets.split(","):
         for size in args.sizes.split(","):

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -269,6 +270,12 @@ def _render_into(tmp: Path, p: ScenePreset, texs: list[NDArray[np.uint8]], names
     return angles
 
 
+def textures_label(textures: Sequence[str | Path] | None) -> list[str] | str:
+    """How a render's textures are recorded (OUT/gt/scene.json's `textures`, benchmark configs):
+    the photos' paths, or "procedural"."""
+    return [str(t) for t in textures] if textures else "procedural"
+
+
 def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: list[Path] | None = None,
                  seed: int = 0, image_size: tuple[int, int] | None = None,
                  overwrite: bool = False) -> RenderedScene:
@@ -300,7 +307,7 @@ def render_scene(out_dir: str | Path, preset: str = DEFAULT_PRESET, textures: li
         meta = {
             "preset": p.name, "description": p.description, "seed": seed, "image_size": list(p.image_size),
             "focal_px": p.focal_px, "azimuths_deg": list(p.cameras.azimuths_deg), "azimuth_step_deg": p.azimuth_step,
-            "textures": [str(t) for t in textures] if textures else "procedural",
+            "textures": textures_label(textures),
             "planes": [{"name": pl.name, "corners_m": pl.corners().round(6).tolist(),
                         "normal": pl.normal.round(6).tolist()} for pl in p.planes],
             "viewing_angles_deg": dict(zip(names, angles)),

@@ -43,6 +43,13 @@ def check_output_file(path: Path, option: str, *, image: bool = False) -> Path:
     return path
 
 
+def check_textures(paths: list[Path] | None) -> None:
+    """A one-line UserError for the first `--texture` photo that is not a file."""
+    for t in paths or []:
+        if not t.expanduser().is_file():
+            raise UserError(f"--texture {t}: no such file")
+
+
 def json_file(value: Path | None) -> Path | None:
     """typer callback of `--json`."""
     return None if value is None else check_output_file(value, "--json")

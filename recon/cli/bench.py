@@ -13,7 +13,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from recon.cli._options import json_file
+from recon.cli._options import check_textures, json_file
 from recon.cli.options import image_size as parse_image_size
 from recon.cli.options import (
     our_settings,
@@ -253,10 +253,8 @@ def difficulty_cmd(
         raise UserError(f"--views {views!r}: expected numbers of views, e.g. 3,4,5") from None
     size = parse_image_size(image_size)
     presets = stock_presets(stock_presets_)
+    check_textures(texture)
     textures = [t.expanduser().resolve() for t in texture or []]
-    for t in textures:
-        if not t.is_file():
-            raise UserError(f"--texture {t}: no such file")
     err = Console(stderr=True, highlight=False)
     with claim_output(out, "bench", legacy=("difficulty.json",)) as out:
         data = run_difficulty(out, counts, max_azimuth, presets, seed=seed, image_size=size,  # type: ignore[arg-type]

@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 import typer
 from rich.console import Console
 
+from recon.cli._options import check_textures
 from recon.cli.options import flag, seed_option
 from recon.cli.options import image_size as parse_image_size
 
@@ -42,9 +43,7 @@ def render_command(
     except ValueError as e:
         raise UserError(str(e)) from None
     size = parse_image_size(image_size)
-    for t in texture or []:
-        if not t.expanduser().is_file():
-            raise UserError(f"--texture {t}: no such file")
+    check_textures(texture)
     out_dir = out_dir.expanduser().absolute()
     check_render_target(out_dir, overwrite)  # read-only: a user's images/ or gt/ is refused untouched
     created = not out_dir.exists()

@@ -54,11 +54,11 @@ def _scene(out: Path, preset: str, seed: int, image_size: tuple[int, int] | None
     """(scene folder OUT/scenes/<name, default the preset>, whether it was (re-)rendered now:
     earlier runs on it are then stale). `textures`: photos pasted on the planes (None: the
     procedural textures); a finished render is reused only with the same seed, size and textures."""
-    from scenes.render import render_scene
+    from scenes.render import render_scene, textures_label
 
     d = out / "scenes" / (name or preset)
     meta_path = d / "gt" / "scene.json"
-    want_textures = [str(t) for t in textures] if textures else "procedural"
+    want_textures = textures_label(textures)
     if meta_path.is_file():
         try:
             meta = json.loads(meta_path.read_text(encoding="utf-8"))
@@ -128,6 +128,7 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
     `textures`: photos pasted on the facade's planes instead of the procedural textures."""
     from recon.errors import UserError
     from scenes.presets import get_preset
+    from scenes.render import textures_label
 
     views = sorted({int(v) for v in views})
     if not views or views[0] < 3:
@@ -138,7 +139,7 @@ def run_difficulty(out: str | Path, views: Sequence[int] = DEFAULT_VIEWS, max_az
     out.mkdir(parents=True, exist_ok=True)
     config = {"views": views, "max_azimuth_deg": max_azimuth_deg, "presets": list(presets), "seed": seed,
               "image_size": list(image_size) if image_size else list(get_preset(f"facade-3x{max_azimuth_deg:g}").image_size),
-              "max_size": max_size, "textures": [str(t) for t in textures] if textures else "procedural",
+              "max_size": max_size, "textures": textures_label(textures),
               "cpu_count": os.cpu_count(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     rows: list[dict[str, Any]] = []
     for n in views:
