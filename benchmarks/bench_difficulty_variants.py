@@ -15,7 +15,8 @@ COLMAP's runs are deterministic for a seed) or runs them when absent.
 
 Writes OUT/variants.json (rows rewritten after every run) and prints a table: per scene and
 method, registered images, median relative rotation error, mean verified inliers per verified
-pair, seconds.
+pair, seconds. `--texture PHOTO` (repeatable) pastes photos on the planes, as `recon bench
+difficulty --texture` does (a scene nothing was tuned on).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from recon.core.jsonio import write_json_atomic
 from recon.eval.compare import load_gt, method_result, run_stock_preset
 from recon.eval.difficulty import DEFAULT_MAX_AZIMUTH, _scene, step_deg
 from recon.eval.gt_planes import correct_counts, correct_error_median, correct_per_pair, transfer_errors
+from scenes.render import textures_label
 
 
 def run_variant(scene: Path, out: Path, gt, settings: list[str], seed: int) -> dict[str, Any]:
@@ -102,19 +104,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stock-from", type=Path, default=None, help="a `recon bench difficulty` output folder")
     ap.add_argument("--stock-presets", default="high,default", help="comma-separated; \"\" = none")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--texture", action="append", type=Path, default=None, metavar="PHOTO",
+                    help="a photo pasted on the facade's planes (repeatable, as `recon bench difficulty "
+                         "--texture`; default: the procedural textures)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
 
+    for photo in args.texture or []:
+        if not photo.expanduser().is_file():
+            print(f"bench_difficulty_variants: --texture {photo}: no such file", file=sys.stderr)
+            return 2
     variants = parse_variants(args.variant)
     out = args.out.expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
     config = {"views": args.views, "variants": dict(variants), "seed": args.seed,
+              "textures": textures_label(args.texture),
               "stock_from": str(args.stock_from) if args.stock_from else None,
               "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
     rows: list[dict[str, Any]] = []
     for n in (int(x) for x in args.views.split(",")):
         preset = f"facade-{n}x{DEFAULT_MAX_AZIMUTH:g}"
-        scene, _ = _scene(out, preset, args.seed, None, lambda m: print(m, file=sys.stderr))
+        scene, _ = _scene(out, preset, args.seed, None, lambda m: print(m, file=sys.stderr), textures=args.texture)
         gt, _, _ = load_gt(scene)
         step = step_deg(n, DEFAULT_MAX_AZIMUTH)
         stock = None
