@@ -71,8 +71,10 @@ class MatcherConfig:
     twice (e.g. (5.66, 0°) and (5.66, 178°) are the same view); 0 = the best `fine_top_k` as
     ranked. Opt-in: on a photo-textured facade at 78° steps, where every neighbour pair's two
     best views rectified the ground and COLMAP found no initial pair, 1.0 registered 3 of 3 at
-    0.030°; on the procedural difficulty curve it adds verified inliers at every step but raises
-    the 78° step's rotation error tenfold (docs/decisions.md, "Distinct fine views")."""
+    0.030°, but on the real scenes it matched 3-11 % fewer inliers per pair and raised
+    fountain_P11's rotation error above stock's; 0.25 (only the grid's near-duplicates) changed
+    the real scenes by nothing and the renders by a few inliers (docs/decisions.md, "Distinct
+    fine views")."""
     fine_include_original: bool = False
     """Also fine-match the unwarped originals (multi-view: keypoints shared across pairs form long
     tracks, and matches cover the surfaces the best view does not rectify)."""
