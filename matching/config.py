@@ -23,6 +23,7 @@ from .coarse import CoarseConfig
 from .escalation import EscalationConfig, SteepConfig
 from .fine import FineConfig
 from .mser import MserConfig
+from .planar import PlanarConfig
 from .reference import ReferenceConfig
 from .refine import RefineConfig
 from .views import GridConfig
@@ -75,6 +76,9 @@ class MatcherConfig:
     fountain_P11's rotation error above stock's; 0.25 (only the grid's near-duplicates) changed
     the real scenes by nothing and the renders by a few inliers (docs/decisions.md, "Distinct
     fine views")."""
+    planar: PlanarConfig = field(default_factory=PlanarConfig)
+    """One more, distinct fine view for pairs whose fused matches fit one homography
+    (`matching.planar`; off by default)."""
     fine_include_original: bool = False
     """Also fine-match the unwarped originals (multi-view: keypoints shared across pairs form long
     tracks, and matches cover the surfaces the best view does not rectify)."""

@@ -33,6 +33,7 @@ from .strategies import (
     FINISHING,
     escalate,
     fast_path,
+    one_surface_view,
     originals_attempt,
     targeted_attempt,
 )
@@ -97,6 +98,11 @@ class ExtraAffineMatcher:
                                                  ctx.coarse_near if cfg.coarse.settle_targeted else None)
             with ctx.timed("fine"):
                 best = max_verified(ctx.fallen_through, fast_path(ctx))
+        if cfg.simulate and cfg.planar.enabled:
+            with ctx.timed("planar"):
+                best, planar_reason = one_surface_view(ctx, best)
+            if planar_reason:
+                path_reason = f"{path_reason}; {planar_reason}"
         escalation = ""
         if cfg.simulate and should_escalate(cfg.escalation, best.verified, ctx.coarse_inliers()):
             with ctx.timed("escalation"):

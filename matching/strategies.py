@@ -28,6 +28,7 @@ from .fine import fine_match, select_fine_views
 from .guided import guided_epipolar_round, guided_homography_round
 from .matching_utils import polish_homography, ransac_homography
 from .mserlevel import mser_attempt
+from .planar import distinct_view, one_surface
 from .reference import reference_from_final_homography
 from .refine import refine_matches
 from .steep import steep_attempt
@@ -71,6 +72,31 @@ def targeted_attempt(ctx: MatchContext, ref: int, views: list[ViewParams]) -> At
     fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], fine_views, cfg.fine, ctx.pool, cfg.seed)
     n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
     return Attempt(label="", reference=ref, fine=fm, views=fine_views, coarse=scores, verified=n_verified)
+
+
+def one_surface_view(ctx: MatchContext, att: Attempt) -> tuple[Attempt, str]:
+    """`matching.planar`: when one homography explains the attempt's epipolar-verified matches
+    and the coarse search found a distinct view that overlaps, the attempt again with that view
+    fused too, if it verifies more; else `att`. Also the decision in words ("" = not one surface)."""
+    cfg = ctx.cfg
+    fm = att.fine
+    if not cfg.planar.enabled or cfg.verify_model != "fundamental" or not att.coarse or len(fm.matches) < 15:
+        return att, ""
+    flat, why = one_surface(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]], cfg.planar, cfg.seed)
+    if not flat:
+        return att, ""
+    extra = distinct_view(att.coarse, att.views, cfg.planar)
+    if extra is None:
+        return att, f"one surface ({why}), no distinct view overlaps"
+    views = [*att.views, extra]
+    fm2 = fine_match(ctx.store, ctx.names[att.reference], ctx.names[1 - att.reference], views, cfg.fine, ctx.pool,
+                     cfg.seed)
+    n_verified, _ = ctx.verify(fm2.kpts_ref[fm2.matches[:, 0]], fm2.kpts_target[fm2.matches[:, 1]])
+    label = f"one surface ({why}) -> + view (t {extra.t:.2f}, phi {extra.phi:.1f}°)"
+    if n_verified <= att.verified:
+        return att, f"{label}: {n_verified} verified, not more; kept {att.verified}"
+    more = dataclasses.replace(att, fine=fm2, views=views, verified=n_verified)
+    return more, f"{label}: {att.verified} -> {n_verified} verified"
 
 
 def fast_path(ctx: MatchContext) -> Attempt:
