@@ -30,8 +30,9 @@ class PlanarConfig:
     """When and how far from the chosen views the extra fine view is taken."""
 
     enabled: bool = False
-    """Fuse one more, distinct view into pairs whose matches fit one homography (off by default:
-    docs/decisions.md, "A distinct view for one-surface pairs")."""
+    """Fuse one more, distinct view into pairs whose matches fit one homography (on in
+    `MatcherConfig.multiview`, i.e. `recon run`; docs/decisions.md, "A distinct view for
+    one-surface pairs")."""
     h_ratio: float = 0.8
     """(0-1] A pair is one surface when a homography's inliers (`h_px`) are at least this share
     of its fundamental-matrix inliers (COLMAP's `max_H_inlier_ratio`)."""

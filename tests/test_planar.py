@@ -71,7 +71,7 @@ PHOTOS = ("scenes/castle_P30/images/0004.jpg", "scenes/sceaux_castle/images/100_
 def test_a_one_surface_pair_of_the_photo_textured_facade_gets_a_distinct_view(tmp_path):
     """The facade textured with three shared photos, views 78° apart: without the option the
     pair's two fine views both rectify the ground (one homography explains the matches); with
-    it a distinct view is fused and more matches verify."""
+    it (`recon run`'s default) a distinct view is fused and more matches verify."""
     import cv2
 
     from matching.matcher import ExtraAffineMatcher, MatcherConfig
@@ -84,8 +84,8 @@ def test_a_one_surface_pair_of_the_photo_textured_facade_gets_a_distinct_view(tm
     for p in images[1:]:
         store.add_image(p.stem, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE))
     names = images[1].stem, images[2].stem
-    off = ExtraAffineMatcher(MatcherConfig.from_overrides(variant="multiview")).match(store, *names)
-    on = ExtraAffineMatcher(MatcherConfig.from_overrides(variant="multiview", planar__enabled=True)).match(store, *names)
+    off = ExtraAffineMatcher(MatcherConfig.from_overrides(variant="multiview", planar__enabled=False)).match(store, *names)
+    on = ExtraAffineMatcher(MatcherConfig.multiview()).match(store, *names)  # `recon run`'s matcher
     assert len(off.best_views) == 3  # two simulated views and the original
     assert "-> + view" in on.path_reason and "one surface" in on.path_reason
     assert len(on.best_views) == 4 and on.best_views[:3] == off.best_views
