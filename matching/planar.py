@@ -4,7 +4,8 @@ The fine stage fuses the `fine_top_k` best coarse views. Where one surface domin
 ORB scores (a textured ground seen from far apart), those views all rectify it, every fused
 match lies on it, and COLMAP calls the pair planar (`PLANAR_OR_PANORAMIC`): it gives no initial
 pair and only a weak registration. When one homography explains at least `h_ratio` of the
-attempt's epipolar-verified matches (COLMAP's own test, `max_H_inlier_ratio` = 0.8) and the
+attempt's epipolar-verified matches (COLMAP's test at its default `max_H_inlier_ratio`, 0.8;
+`recon run`'s verification calls a pair planar only from 0.95) and the
 coarse search found another view far from the chosen ones in the tilt plane (radius log t,
 angle 2 phi; `adaptive.tilt_plane_point`) that still overlaps the target (`min_inliers` ORB
 inliers), that view is fused as well, and the attempt with more verified matches is kept.
@@ -35,7 +36,7 @@ class PlanarConfig:
     one-surface pairs")."""
     h_ratio: float = 0.8
     """(0-1] A pair is one surface when a homography's inliers (`h_px`) are at least this share
-    of its fundamental-matrix inliers (COLMAP's `max_H_inlier_ratio`)."""
+    of its fundamental-matrix inliers (COLMAP's default `max_H_inlier_ratio`)."""
     h_px: float = 3.0
     """Homography inlier threshold, working px (the verification's, `verify.verify_matches`)."""
     min_distance: float = 1.0

@@ -7,7 +7,6 @@ import re
 import numpy as np
 import pytest
 
-from conftest import SHARED_DATA
 from matching.planar import PlanarConfig, distinct_view, one_surface
 from matching.types import CoarseScore, ViewParams
 
@@ -68,7 +67,7 @@ PHOTOS = ("scenes/castle_P30/images/0004.jpg", "scenes/sceaux_castle/images/100_
 
 @pytest.mark.slow
 @pytest.mark.requires_shared(*PHOTOS)
-def test_a_one_surface_pair_of_the_photo_textured_facade_gets_a_distinct_view(tmp_path):
+def test_a_one_surface_pair_of_the_photo_textured_facade_gets_a_distinct_view(tmp_path, shared_data):
     """The facade textured with three shared photos, views 78° apart: without the option the
     pair's two fine views both rectify the ground (one homography explains the matches); with
     it (`recon run`'s default) a distinct view is fused and more matches verify."""
@@ -78,7 +77,7 @@ def test_a_one_surface_pair_of_the_photo_textured_facade_gets_a_distinct_view(tm
     from matching.store import FeatureStore
     from scenes.render import render_scene
 
-    images = render_scene(tmp_path / "s", "facade-3x78", textures=[SHARED_DATA / p for p in PHOTOS]).image_paths
+    images = render_scene(tmp_path / "s", "facade-3x78", textures=[shared_data / p for p in PHOTOS]).image_paths
     assert len(images) == 3
     store = FeatureStore()
     for p in images[1:]:
