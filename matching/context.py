@@ -46,6 +46,8 @@ class Attempt:
     coarse: list[CoarseScore]
     verified: int
     both_simulated: bool = False  # both images were simulated: the final homography decides the reference
+    verified_mask: NDArray[np.bool_] | None = field(default=None, repr=False)
+    """Which of `fine.matches` the verification accepted (None where an attempt did not keep it)."""
 
 
 @dataclass

@@ -46,9 +46,14 @@ class PlanarConfig:
     """ORB RANSAC inliers the extra view needs in the coarse search (random matches reach ~10)."""
 
 
-def one_surface(pts_ref: np.ndarray, pts_target: np.ndarray, cfg: PlanarConfig, seed: int = 0) -> tuple[bool, str]:
-    """(whether one homography explains the matches' epipolar inliers, the evidence in words)."""
-    n_f, f_mask = verify_matches(pts_ref, pts_target, "fundamental", seed)
+def one_surface(pts_ref: np.ndarray, pts_target: np.ndarray, cfg: PlanarConfig, seed: int = 0,
+                f_mask: np.ndarray | None = None) -> tuple[bool, str]:
+    """(whether one homography explains the matches' epipolar inliers, the evidence in words).
+    `f_mask`: the matches' fundamental-matrix verification when the caller already has it (the
+    attempt's own, `verify.verify_matches` with the same seed); computed here otherwise."""
+    if f_mask is None or len(f_mask) != len(pts_ref):
+        _, f_mask = verify_matches(pts_ref, pts_target, "fundamental", seed)
+    n_f = int(np.count_nonzero(f_mask))
     if n_f < 15:
         return False, f"{n_f} epipolar inliers"
     H, h_mask = ransac_homography(np.asarray(pts_ref)[f_mask], np.asarray(pts_target)[f_mask], cfg.h_px, seed=seed)

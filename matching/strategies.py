@@ -44,8 +44,9 @@ def fine_attempt(ctx: MatchContext, ref: int, top_k: int, label: str) -> Attempt
     scores = ctx.coarse_for(ref)
     views = select_fine_views(rank_views(scores), top_k, cfg.fine_include_original, cfg.fine_min_view_distance)
     fm = fine_match(ctx.store, ctx.names[ref], ctx.names[1 - ref], views, cfg.fine, ctx.pool, cfg.seed)
-    n_verified, _ = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
-    return Attempt(label=label, reference=ref, fine=fm, views=views, coarse=scores, verified=n_verified)
+    n_verified, mask = ctx.verify(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]])
+    return Attempt(label=label, reference=ref, fine=fm, views=views, coarse=scores, verified=n_verified,
+                   verified_mask=mask)
 
 
 def originals_attempt(ctx: MatchContext, ref: int, verified_only: bool = False) -> Attempt:
@@ -82,7 +83,8 @@ def one_surface_view(ctx: MatchContext, att: Attempt) -> tuple[Attempt, str]:
     fm = att.fine
     if not cfg.planar.enabled or cfg.verify_model != "fundamental" or not att.coarse or len(fm.matches) < 15:
         return att, ""
-    flat, why = one_surface(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]], cfg.planar, cfg.seed)
+    flat, why = one_surface(fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]], cfg.planar, cfg.seed,
+                            att.verified_mask)
     if not flat:
         return att, ""
     extra = distinct_view(att.coarse, att.views, cfg.planar)
@@ -91,11 +93,11 @@ def one_surface_view(ctx: MatchContext, att: Attempt) -> tuple[Attempt, str]:
     views = [*att.views, extra]
     fm2 = fine_match(ctx.store, ctx.names[att.reference], ctx.names[1 - att.reference], views, cfg.fine, ctx.pool,
                      cfg.seed)
-    n_verified, _ = ctx.verify(fm2.kpts_ref[fm2.matches[:, 0]], fm2.kpts_target[fm2.matches[:, 1]])
+    n_verified, mask = ctx.verify(fm2.kpts_ref[fm2.matches[:, 0]], fm2.kpts_target[fm2.matches[:, 1]])
     label = f"one surface ({why}) -> + view (t {extra.t:.2f}, phi {extra.phi:.1f}°)"
     if n_verified <= att.verified:
         return att, f"{label}: {n_verified} verified, not more; kept {att.verified}"
-    more = dataclasses.replace(att, fine=fm2, views=views, verified=n_verified)
+    more = dataclasses.replace(att, fine=fm2, views=views, verified=n_verified, verified_mask=mask)
     return more, f"{label}: {att.verified} -> {n_verified} verified"
 
 
