@@ -135,7 +135,7 @@ class MatcherConfig:
     @staticmethod
     def paper() -> MatcherConfig:
         """A plain reading of the paper: Eq. 1 reference, most-matches ranking, no blur, no escalation."""
-        return MatcherConfig(reference=ReferenceConfig(mode="paper"), guided=False, final_ransac_px=3.0,
+        return MatcherConfig(reference=ReferenceConfig(mode="paper", decision_scale=1.0), guided=False, final_ransac_px=3.0,
                              coarse=CoarseConfig(rank_by="matches", max_area_ratio=0.0, max_side=0,
                                                      search="grid", settle_targeted=False),
                              fine=FineConfig(antialias=False, max_area_ratio=0.0), fine_top_k=1,
@@ -195,6 +195,7 @@ class MatcherConfig:
         verified inliers on the rendered scenes (docs/decisions.md, "A distinct view for
         one-surface pairs")."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
+                             reference=ReferenceConfig(decision_scale=1.0),
                              planar=PlanarConfig(enabled=True),
                              fine=FineConfig(original_detector="colmap-sift"),
                              escalation=EscalationConfig(pairs=False, two_sided=False, min_coarse_inliers=15,

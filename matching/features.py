@@ -9,6 +9,8 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -192,18 +194,54 @@ def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift', 'orb' or one of {', '.join(COLMAP_DETECTORS)}")
 
 
-_sift_gate = threading.BoundedSemaphore(1)
+SIFT_PIXEL_BUDGET = 1_600_000
+"""Input pixels that the OpenCV SIFT detections running at once in this process may add up to
+(one detection is always admitted, whatever its size): two 1024x768 images (1.57 Mpx) or two
+800x640 views run side by side, a 1600 px photo (1.7 Mpx) runs alone. OpenCV's SIFT doubles its
+input and keeps ~11 float layers of it (~235 bytes per input pixel: ~120 MB at 800x640, ~400 MB
+at 1600x1067), so the budget bounds that working memory to about 380 MB; it is multi-threaded
+inside, but its serial parts leave the second core idle, so two small detections at once take
+0.136 s instead of 0.172 s on 2 cores (graf's img1 twice; identical features, docs/decisions.md,
+"SIFT detections side by side within a pixel budget")."""
 
 
-def set_sift_concurrency(n: int) -> None:
-    """How many SIFT detections may run at once in this process (default 1).
+class PixelGate:
+    """Admits work while the pixels of the work running stay within `budget_px`; one piece is
+    always admitted, so no input is refused however large. Thread-safe."""
 
-    OpenCV's SIFT doubles its input and keeps ~11 float layers of it, and it is already
-    multi-threaded inside, so running two at once gains little time for twice the peak memory
-    (figures in docs/decisions.md).
-    """
+    def __init__(self, budget_px: int):
+        self.budget_px = max(0, int(budget_px))
+        self._used = 0
+        self._running = 0
+        self._cond = threading.Condition()
+
+    @contextmanager
+    def hold(self, pixels: int) -> Iterator[None]:
+        """Run the `with` block once `pixels` more fit the budget (or nothing else runs)."""
+        px = max(0, int(pixels))
+        with self._cond:
+            while self._running and self._used + px > self.budget_px:
+                self._cond.wait()
+            self._used += px
+            self._running += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._used -= px
+                self._running -= 1
+                self._cond.notify_all()
+
+
+_sift_gate = PixelGate(SIFT_PIXEL_BUDGET)
+
+
+def set_sift_pixel_budget(pixels: int) -> None:
+    """How many input pixels the SIFT detections running at once may add up to (default
+    `SIFT_PIXEL_BUDGET`; 0 = one detection at a time, as before 2026-12-06). Detections already
+    running finish under the gate they entered."""
     global _sift_gate
-    _sift_gate = threading.BoundedSemaphore(max(1, int(n)))
+    _sift_gate = PixelGate(pixels)
 
 
 def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] | None = None) -> Features:
@@ -219,7 +257,7 @@ def detect(img: NDArray[np.uint8], cfg: DetectorConfig, mask: NDArray[np.uint8] 
         return Features(kpts, sizes, angles, desc) if len(kpts) else Features.empty(128, np.float32)
     det = make_detector(cfg)
     if cfg.name == "sift":
-        with _sift_gate:
+        with _sift_gate.hold(img.shape[0] * img.shape[1]):
             kps, desc = det.detectAndCompute(img, mask)
     else:
         kps, desc = det.detectAndCompute(img, mask)

@@ -182,13 +182,14 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
     """SIFT of each view of `ref` ratio-matched against the original `target` (features of the
     view's detector, `FineConfig.detector_for`), fused one-to-one on the target side (closest
     descriptor wins); `seed` seeds FLANN for large sets."""
-    tf = target_features(store, target, cfg)
     size = store.image(ref).shape[1::-1]
 
     def one(view: ViewParams):
         det = cfg.detector_for(view)
+        # the view first: its warp and detection need not wait for the target's detection, which
+        # may still run (the matcher starts it while the coarse search scores its views)
         fv = view_features(store, ref, capped_view(view, size, cfg.max_area_ratio), det, cfg.interp, cfg.antialias)
-        ft, offset = tf.part(det)
+        ft, offset = target_features(store, target, cfg).part(det)
         # the target original's forest is shared by all views and pairs; so is the reference
         # original's, which the identity view's cross-check searches
         m, d = ratio_match(fv.descriptors, ft.descriptors, cv2.NORM_L2, cfg.ratio, seed, forest_t=ft.forest)
@@ -201,6 +202,7 @@ def fine_match(store: FeatureStore, ref: str, target: str, views: list[ViewParam
         return fv, m, d
 
     parts = list(executor.map(one, views)) if executor is not None and len(views) > 1 else [one(v) for v in views]
+    tf = target_features(store, target, cfg)
     kpts_ref, matches, dists, per_view = [], [], [], {}
     offset = 0
     for view, (fv, m, d) in zip(views, parts, strict=True):

@@ -20,6 +20,7 @@ from .config import MatcherConfig
 from .context import Attempt, MatchContext
 from .escalation import should_escalate
 from .geometry import scale_1_from_0
+from .matching_utils import FLANN_MIN_SIZE
 from .reference import (
     ReferenceDecision,
     choose_reference,
@@ -38,7 +39,7 @@ from .strategies import (
     targeted_attempt,
 )
 from .types import PairResult
-from .viewfeatures import original_features
+from .viewfeatures import decision_features, original_features
 from .views import view_grid
 
 __all__ = ["ExtraAffineMatcher", "MatcherConfig"]
@@ -87,6 +88,10 @@ class ExtraAffineMatcher:
             # what the originals' evidence says, recorded whether or not the adaptive paths act on it
             ref, plan = plan_from_decision(ctx, decision)
             planned = plan.path
+            # the originals every path reads at full resolution: the target of a known reference, both
+            # images for the originals path
+            prefetch_originals(ctx, [] if ref is None else ([ref, 1 - ref] if plan.path == "originals" and cfg.adaptive
+                                                            else [1 - ref]))
             if cfg.adaptive:
                 best, path, path_reason = adaptive_paths(ctx, decision, ref, plan)
             else:
@@ -140,11 +145,30 @@ class ExtraAffineMatcher:
 
 
 def decide_reference(ctx: MatchContext) -> ReferenceDecision:
-    """SIFT of both originals (cached in the store: the fine stage reuses them) and the reference
-    decision they support (`reference.choose_reference`)."""
+    """SIFT of both originals at `ReferenceConfig.decision_scale` (cached in the store; at 1 the
+    fine stage reuses them) and the reference decision they support
+    (`reference.choose_reference`)."""
     sift = ctx.cfg.fine.detector
-    feats = ctx.map(lambda n: original_features(ctx.store, n, sift), list(ctx.names))
+    scale = ctx.cfg.reference.decision_scale
+    feats = ctx.map(lambda n: decision_features(ctx.store, n, sift, scale), list(ctx.names))
     return choose_reference(feats[0], feats[1], ctx.cfg.reference, ctx.size(0), ctx.cfg.seed)
+
+
+def prefetch_originals(ctx: MatchContext, sides: list[int]) -> None:
+    """Start the full-resolution SIFT of the originals on `sides` on the view pool, so it runs
+    while the coarse search scores its views (the fine stage then finds it in the store, or waits
+    for it there); nothing without a pool or where the decision already read them."""
+    if ctx.pool is None or ctx.cfg.reference.decision_scale >= 1.0:
+        return
+    sift, seed = ctx.cfg.fine.detector, ctx.cfg.seed
+
+    def detect_and_index(name: str) -> None:
+        f = original_features(ctx.store, name, sift)
+        if len(f) >= FLANN_MIN_SIZE:  # the k-d forest every view's ratio test searches
+            f.forest(seed)
+
+    for side in sides:
+        ctx.pool.submit(detect_and_index, ctx.names[side])
 
 
 def max_verified(a: Attempt | None, b: Attempt) -> Attempt:

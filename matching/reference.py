@@ -60,8 +60,18 @@ class ReferenceConfig:
     max_segments: int = 2000
     """Random inlier segments of the median-log-ratio fallback (used without image sizes)."""
     max_features: int = 1000
-    """SIFT points per image for this step (the paper's cap): the strongest of the already
-    computed features, so no second detection is needed."""
+    """SIFT points per image for this step (the paper's cap): the strongest of the features
+    detected at `decision_scale`."""
+    decision_scale: float = 0.5
+    """(0, 1] Each original is downscaled by this factor (area interpolation) for this step's SIFT,
+    keypoints mapped back to full-resolution pixels (`viewfeatures.decision_features`). 1 = the
+    full-resolution SIFT that the fine stage also reads (the paper's, and `recon run`'s: in a scene
+    every original's full-resolution SIFT is needed as some pair's target anyway). Why 0.5 for the
+    pair matcher: a scale ratio and a rough homography need only the 1000 strongest, mostly coarse
+    features, and a half-size detection costs a quarter of a full one, while on a pair that
+    simulates views the reference's full-resolution SIFT served nothing but this step. On the 18
+    shared pairs the reference and the path are the same as at 1 on every pair and the targeted
+    views on 17 (docs/decisions.md, "Reference decision at half resolution")."""
 
 
 @dataclass

@@ -78,6 +78,11 @@ class FeatureStore:
                 del self._entries[k]
 
     # entries ------------------------------------------------------------------------------
+    def keys(self, name: str) -> list[str]:
+        """The keys of `name`'s entries held in memory (what has been computed or loaded)."""
+        with self._guard:
+            return [key for (n, key) in self._entries if n == name]
+
     def get_or_compute(self, name: str, key: str, compute: Callable[[], Features],
                        persist: bool = True) -> Features:
         """The entry (name, key), computing it with `compute()` only the first time."""

@@ -26,6 +26,27 @@ def original_features(store: FeatureStore, name: str, det: DetectorConfig) -> Fe
     return store.get_or_compute(name, f"{det.key}@orig", lambda: detect(store.image(name), det))
 
 
+def decision_features(store: FeatureStore, name: str, det: DetectorConfig, scale: float) -> Features:
+    """Features of the original downscaled by `scale` (area interpolation; cached as
+    `<det>@orig_x<scale>`), keypoints and sizes in full-resolution pixels (pixel-centre frame:
+    x = (x_small + 0.5) / f - 0.5 per axis, f the exact ratio of the rounded sizes). `scale` >= 1
+    is `original_features`. For the reference decision (`ReferenceConfig.decision_scale`)."""
+    if scale >= 1.0:
+        return original_features(store, name, det)
+
+    def compute() -> Features:
+        img = store.image(name)
+        h, w = img.shape[:2]
+        ws, hs = max(1, round(w * scale)), max(1, round(h * scale))
+        f = detect(cv2.resize(img, (ws, hs), interpolation=cv2.INTER_AREA), det)
+        factor = np.array([ws / w, hs / h], np.float32)
+        f.kpts = ((f.kpts + 0.5) / factor - 0.5).astype(np.float32)
+        f.sizes = (f.sizes / float(np.sqrt(factor[0] * factor[1]))).astype(np.float32)
+        return f
+
+    return store.get_or_compute(name, f"{det.key}@orig_x{scale:g}", compute)
+
+
 def away_from_canvas_edge(kpts_view: NDArray, sizes: NDArray, mask: NDArray,
                           size_factor: float = 0.5) -> NDArray[np.bool_]:
     """Keypoints (in view pixels) whose support region stays inside the warped image.

@@ -180,3 +180,59 @@ def test_shared_forests_stay_within_their_memory_budget(monkeypatch):
     del c
     gc.collect()
     assert len(feats._FOREST_LRU) == before - 1
+
+
+def test_decision_features_land_on_the_full_resolution_keypoints(graf1):
+    """Half-size SIFT mapped back to full-resolution pixels (`decision_features`): most of its
+    keypoints have their descriptor's nearest full-resolution keypoint within 3 px, a median
+    0.1 px away with no bias (a mapping without the pixel-centre terms would be 0.5 px off), at
+    the same size."""
+    import cv2
+
+    from matching.viewfeatures import decision_features
+
+    full = original_features(graf1, "g", SIFT)
+    half = decision_features(graf1, "g", SIFT, 0.5)
+    assert 0.3 * len(full) < len(half) < 0.6 * len(full)
+    _, idx = cv2.batchDistance(half.descriptors, full.descriptors, cv2.CV_32F, K=1)
+    d = half.kpts - full.kpts[idx[:, 0]]
+    close = np.linalg.norm(d, axis=1) < 3.0
+    assert close.mean() > 0.7
+    assert np.all(np.abs(np.median(d[close], axis=0)) < 0.05)
+    assert np.median(np.linalg.norm(d[close], axis=1)) < 0.2
+    assert abs(np.median(half.sizes[close] / full.sizes[idx[close, 0]]) - 1.0) < 0.05
+    assert decision_features(graf1, "g", SIFT, 1.0) is full  # scale 1: the full-resolution set itself
+
+
+def test_pixel_gate_runs_small_work_side_by_side_and_large_work_alone():
+    """`features.PixelGate`: pieces whose pixels fit the budget run at once, a piece that would
+    exceed it waits, and a piece larger than the whole budget still runs (alone)."""
+    import threading
+    import time
+
+    from matching.features import PixelGate
+
+    def peak_concurrency(gate: PixelGate, sizes: list[int]) -> int:
+        running, peak, lock = [0], [0], threading.Lock()
+
+        def work(px: int) -> None:
+            with gate.hold(px):
+                with lock:
+                    running[0] += 1
+                    peak[0] = max(peak[0], running[0])
+                time.sleep(0.05)
+                with lock:
+                    running[0] -= 1
+
+        threads = [threading.Thread(target=work, args=(px,)) for px in sizes]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=10)
+        assert not any(t.is_alive() for t in threads)
+        return peak[0]
+
+    assert peak_concurrency(PixelGate(1000), [400, 400]) == 2
+    assert peak_concurrency(PixelGate(1000), [600, 600, 600]) == 1
+    assert peak_concurrency(PixelGate(1000), [5000]) == 1  # over budget, still admitted
+    assert peak_concurrency(PixelGate(0), [1, 1, 1]) == 1  # 0: one at a time

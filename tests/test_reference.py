@@ -199,3 +199,38 @@ def test_reference_from_the_final_homography():
     assert res.reference == 0 and res.reference_reason.endswith("image 0 is 1.60x larger")
     weak = reference_from_final_homography(_two_sided_result(1.6, 20), SIZE0, min_inliers=30)  # too few inliers
     assert weak.reference == 0 and weak.reference_reason == "undecided"
+
+
+def test_the_half_resolution_decision_matches_the_full_one_on_graf(shared_data):
+    """`ReferenceConfig.decision_scale` 0.5 (the pair matcher's default) against 1 (the paper's,
+    `recon run`'s) on graf 1-2..1-6: the same reference and the same adaptive path; on a pair that
+    simulates views (graf 1-3, targeted) the reference's full-resolution SIFT is never computed,
+    which is the time it saves, and the result is the full-resolution decision's to the match."""
+    import dataclasses
+
+    from matching.config import MatcherConfig
+    from matching.matcher import ExtraAffineMatcher, decide_reference, plan_from_decision
+
+    g = shared_data / "oxford" / "graf"
+    half_cfg = MatcherConfig(workers=1)
+    assert half_cfg.reference.decision_scale == 0.5
+    full_cfg = dataclasses.replace(half_cfg, reference=dataclasses.replace(half_cfg.reference, decision_scale=1.0))
+    for k in range(2, 7):
+        plans = []
+        for cfg in (half_cfg, full_cfg):
+            m = ExtraAffineMatcher(cfg)
+            ctx = m.context(_graf_store(g, "img1", f"img{k}"), "img1", f"img{k}")
+            decision = decide_reference(ctx)
+            ref, plan = plan_from_decision(ctx, decision)
+            plans.append((decision.reference, ref, plan.path))
+        assert plans[0] == plans[1], f"graf 1-{k}"
+    results = []
+    for cfg in (half_cfg, full_cfg):
+        store = _graf_store(g, "img1", "img3")
+        r = ExtraAffineMatcher(cfg).match(store, "img1", "img3")
+        assert r.path == "targeted" and r.reference == 0
+        computed = {key for key in store.keys("img1") if key.endswith("@orig")}
+        results.append((r, computed))
+    assert not results[0][1] and results[1][1]  # the reference's full-resolution SIFT: only at scale 1
+    np.testing.assert_array_equal(results[0][0].matches, results[1][0].matches)
+    np.testing.assert_array_equal(results[0][0].kpts1, results[1][0].kpts1)

@@ -295,3 +295,27 @@ def test_neighbour_affines_match_a_per_match_least_squares_fit():
     assert np.isnan(local_affines_at(p0[:3], p1[:3], np.array([0]), 12)).all()  # fewer than 4 matches
     line = np.c_[np.arange(20.0), np.zeros(20)]
     assert np.isnan(local_affines_from_neighbours(line, 2 * line, 12)).all()  # collinear: degenerate
+
+
+def test_refinement_split_over_a_pool_gives_the_same_points():
+    """`refine_matches` with a thread pool refines blocks of the matches side by side: the same
+    refined points and moved mask as one block, with a homography's affines or neighbours'."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from matching.refine import PARALLEL_MIN_MATCHES
+
+    img0, img1, H = _pair()
+    rng = np.random.default_rng(1)
+    pts0 = np.stack([rng.uniform(120, 520, 400), rng.uniform(100, 380, 400)], 1)
+    pts1 = project(H, pts0)
+    inside = (pts1 > 20).all(1) & (pts1[:, 0] < 620) & (pts1[:, 1] < 460)
+    noisy0 = (pts0 + rng.normal(0, 1.2, pts0.shape))[inside].astype(np.float32)
+    pts1 = pts1[inside]
+    assert len(noisy0) >= PARALLEL_MIN_MATCHES
+    with ThreadPoolExecutor(2) as pool:
+        for H_given in (H, None):
+            one, moved_one = refine_matches(img0, img1, noisy0, pts1, H_given, RefineConfig())
+            split, moved_split = refine_matches(img0, img1, noisy0, pts1, H_given, RefineConfig(), pool, parts=3)
+            assert moved_one.mean() > 0.8
+            np.testing.assert_array_equal(split, one)
+            np.testing.assert_array_equal(moved_split, moved_one)
