@@ -194,15 +194,16 @@ def make_detector(cfg: DetectorConfig) -> cv2.Feature2D:
     raise ValueError(f"unknown detector {cfg.name!r}; choose 'sift', 'orb' or one of {', '.join(COLMAP_DETECTORS)}")
 
 
-SIFT_PIXEL_BUDGET = 1_600_000
+SIFT_PIXEL_BUDGET = 1_200_000
 """Input pixels that the OpenCV SIFT detections running at once in this process may add up to
-(one detection is always admitted, whatever its size): two 1024x768 images (1.57 Mpx) or two
-800x640 views run side by side, a 1600 px photo (1.7 Mpx) runs alone. OpenCV's SIFT doubles its
+(one detection is always admitted, whatever its size): two 800x640 images or views (1.02 Mpx)
+run side by side, a 1024x768 image or a 1600 px photo runs alone. OpenCV's SIFT doubles its
 input and keeps ~11 float layers of it (~235 bytes per input pixel: ~120 MB at 800x640, ~400 MB
-at 1600x1067), so the budget bounds that working memory to about 380 MB; it is multi-threaded
-inside, but its serial parts leave the second core idle, so two small detections at once take
-0.136 s instead of 0.172 s on 2 cores (graf's img1 twice; identical features, docs/decisions.md,
-"SIFT detections side by side within a pixel budget")."""
+at 1600x1067), so the budget bounds that working memory to about 280 MB. It is multi-threaded
+inside, but its serial parts leave the second core idle: with the target's detection started
+during the coarse search (`matcher.prefetch_originals`) and the fine views detected side by
+side, graf's pairs take 0.62-0.84 s instead of 0.71-1.01 s (1.6 Mpx, three at once, measured
+the same; docs/decisions.md, "SIFT detections side by side within a pixel budget")."""
 
 
 class PixelGate:
