@@ -73,6 +73,10 @@ class ReferenceConfig:
     shared pairs the reference and the path are the same as at 1 on every pair and the targeted
     views on 17 (docs/decisions.md, "Reference decision at half resolution")."""
 
+    def __post_init__(self) -> None:
+        if not 0.0 < self.decision_scale <= 1.0:
+            raise ValueError(f"ReferenceConfig.decision_scale must be in (0, 1], not {self.decision_scale!r}")
+
 
 @dataclass
 class ReferenceDecision:

@@ -280,7 +280,8 @@ def refine_matches(img0: NDArray[np.uint8], img1: NDArray[np.uint8], pts0: NDArr
     """Refined image-0 points of the matches (pts0[i], pts1[i]) and which moved; the local
     affines come from `H_1_from_0` when given, else from neighbouring matches. With a `pool`,
     `parts` contiguous blocks of the matches are refined side by side (OpenCV's warps and
-    correlations release the GIL): the same points, in about 0.6x the wall time on 2 cores."""
+    correlations release the GIL): the same points, in about two thirds of the wall time on
+    2 cores (graf 1-3's 938 matches: 0.09 -> 0.06 s)."""
     if len(pts0) == 0:
         return np.asarray(pts0, np.float32).reshape(0, 2), np.zeros(0, bool)
     if H_1_from_0 is not None:

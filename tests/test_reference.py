@@ -234,3 +234,14 @@ def test_the_half_resolution_decision_matches_the_full_one_on_graf(shared_data):
     assert not results[0][1] and results[1][1]  # the reference's full-resolution SIFT: only at scale 1
     np.testing.assert_array_equal(results[0][0].matches, results[1][0].matches)
     np.testing.assert_array_equal(results[0][0].kpts1, results[1][0].kpts1)
+
+
+def test_decision_scale_outside_0_1_is_refused():
+    from matching.config import MatcherConfig
+
+    for bad in (0.0, -0.5, 1.5):
+        with pytest.raises(ValueError, match="decision_scale"):
+            ReferenceConfig(decision_scale=bad)
+        with pytest.raises(ValueError, match="decision_scale"):
+            MatcherConfig.from_overrides(reference__decision_scale=bad)
+    assert MatcherConfig.from_overrides(reference__decision_scale=0.25).reference.decision_scale == 0.25
