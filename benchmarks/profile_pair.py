@@ -10,6 +10,12 @@ spent in each primitive, wrapped where the stages call it: SIFT / ORB detection,
 (`views.simulate`), the canvas-edge filter, L2 / Hamming ratio matching, RANSAC homographies and
 the guided round, with the number of calls (e.g. ORB calls = coarse views scored + the target).
 CPU seconds are steadier than wall seconds on a loaded machine; OpenCV's own threads count.
+
+`--timeline` runs the matcher as `recon bench pairs` does (its view pool on every core) and prints
+instead, per call of those primitives and of the patch refinement's blocks, the wall-clock
+interval (seconds from the pair's start) and the thread it ran on: which detections overlap the
+coarse search or each other, and what the critical path is (docs/decisions.md, "SIFT detections
+side by side within a pixel budget").
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from __future__ import annotations
 import argparse
 import collections
 import functools
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -29,6 +36,7 @@ import matching.fine as fine
 import matching.guided as guided
 import matching.matching_utils as mu
 import matching.reference as reference
+import matching.refine as refine
 import matching.strategies as strategies
 import matching.viewfeatures as viewfeatures
 import matching.views as views
@@ -37,6 +45,8 @@ from recon.eval.bench_pairs import discover_pairs, load_gray, run_pair
 
 CPU: dict[str, float] = collections.defaultdict(float)
 CALLS: collections.Counter[str] = collections.Counter()
+TIMELINE: list[tuple[float, float, str, str]] = []
+"""(start, end, thread, primitive) of every wrapped call, wall seconds of `time.perf_counter`."""
 
 
 def _wrap(fn, label, detail=None):
@@ -44,11 +54,13 @@ def _wrap(fn, label, detail=None):
     def timed(*a, **k):
         name = label if detail is None else f"{label}:{detail(*a, **k)}"
         t = time.process_time()
+        w = time.perf_counter()
         try:
             return fn(*a, **k)
         finally:
             CPU[name] += time.process_time() - t
             CALLS[name] += 1
+            TIMELINE.append((w, time.perf_counter(), threading.current_thread().name, name))
     return timed
 
 
@@ -65,22 +77,25 @@ def instrument() -> None:
     coarse.ransac_homography = strategies.ransac_homography = reference.ransac_homography = rh
     guided.ransac_homography = rh
     guided.guided_match = _wrap(fine.guided_match, "guided match")
+    refine.refine_points0 = _wrap(refine.refine_points0, "patch refinement block")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data_root", type=Path)
     ap.add_argument("pairs", help='comma-separated pair names, e.g. "graf 1-3,graf 1-5"')
     ap.add_argument("--set", action="append", default=[], metavar="SECTION__FIELD=VALUE",
                     help="a MatcherConfig override (MatcherConfig.from_overrides), repeatable")
-    args = ap.parse_args()
+    ap.add_argument("--timeline", action="store_true",
+                    help="wall-clock intervals per thread with the view pool on every core, instead of CPU seconds")
+    args = ap.parse_args(argv)
     overrides: dict[str, Any] = {}
     for kv in args.set:
         key, _, raw = kv.partition("=")
         overrides[key] = {"true": True, "false": False}.get(raw.lower(), raw)
     instrument()
     by_name = {p.name: p for p in discover_pairs(args.data_root)}
-    matcher = ExtraAffineMatcher(MatcherConfig.from_overrides(workers=1, **overrides))
+    matcher = ExtraAffineMatcher(MatcherConfig.from_overrides(workers=0 if args.timeline else 1, **overrides))
     for name in [n.strip() for n in args.pairs.split(",")]:
         if name not in by_name:
             raise SystemExit(f"no pair {name!r}; pairs: {', '.join(by_name)}")
@@ -89,12 +104,18 @@ def main() -> None:
         run_pair(pair, img0, img1, "extra-affine", matcher)
         CPU.clear()
         CALLS.clear()
+        TIMELINE.clear()
         c0 = time.process_time()
+        w0 = time.perf_counter()
         row = run_pair(pair, img0, img1, "extra-affine", matcher)
         cpu = time.process_time() - c0
         stages = ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items())
         print(f"{name}: path {row['path']}, {row['points']} points at {100 * row['precision']:.2f} %, "
               f"{cpu:.2f} CPU s; stages (wall s): {stages}")
+        if args.timeline:
+            for start, end, thread, what in sorted(TIMELINE):
+                print(f"    {start - w0:.3f}-{end - w0:.3f} s ({end - start:.3f})  {thread:12s} {what}")
+            continue
         for k, v in sorted(CPU.items(), key=lambda kv: -kv[1]):
             print(f"    {k:28s} {v:6.3f} CPU s  {100 * v / cpu:5.1f} %  ({CALLS[k]} calls)")
 

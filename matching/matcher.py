@@ -101,6 +101,8 @@ class ExtraAffineMatcher:
                 ctx.reference = settle_reference(decision, ctx.coarse_for, ctx.size(0), cfg.reference,
                                                  cfg.coarse.accept_inliers,
                                                  ctx.coarse_near if cfg.coarse.settle_targeted else None)
+            if decision.reference is None:  # settled only now: its target's detection starts beside the first views'
+                prefetch_originals(ctx, [1 - ctx.reference])
             with ctx.timed("fine"):
                 best = max_verified(ctx.fallen_through, fast_path(ctx))
         if cfg.simulate and cfg.planar.enabled:
