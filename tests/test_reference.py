@@ -201,6 +201,7 @@ def test_reference_from_the_final_homography():
     assert weak.reference == 0 and weak.reference_reason == "undecided"
 
 
+@pytest.mark.slow
 def test_the_half_resolution_decision_matches_the_full_one_on_graf(shared_data):
     """`ReferenceConfig.decision_scale` 0.5 (the pair matcher's default) against 1 (the paper's,
     `recon run`'s) on graf 1-2..1-6: the same reference and the same adaptive path; on a pair that
