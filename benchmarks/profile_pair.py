@@ -25,6 +25,7 @@ import collections
 import functools
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,20 +65,34 @@ def _wrap(fn, label, detail=None):
     return timed
 
 
-def instrument() -> None:
-    """Wrap the primitives in every module that calls them (they are imported by name)."""
-    det = _wrap(features.detect, "detect", lambda img, cfg, mask=None: cfg.name)
-    viewfeatures.detect = det
-    viewfeatures.simulate = _wrap(views.simulate, "warp views")
-    viewfeatures.away_from_canvas_edge = _wrap(viewfeatures.away_from_canvas_edge, "canvas-edge filter")
+def instrument() -> Callable[[], None]:
+    """Wrap the primitives in every module that calls them (they are imported by name); returns
+    the function that puts the originals back (so a caller in the same process, such as a test,
+    leaves nothing wrapped)."""
+    undo: list[tuple[Any, str, Any]] = []
+
+    def patch(module: Any, name: str, new: Any) -> None:
+        undo.append((module, name, getattr(module, name)))
+        setattr(module, name, new)
+
+    patch(viewfeatures, "detect", _wrap(features.detect, "detect", lambda img, cfg, mask=None: cfg.name))
+    patch(viewfeatures, "simulate", _wrap(views.simulate, "warp views"))
+    patch(viewfeatures, "away_from_canvas_edge", _wrap(viewfeatures.away_from_canvas_edge, "canvas-edge filter"))
     rm = _wrap(mu.ratio_match, "ratio match",
                lambda a, b, norm, *x, **k: "hamming" if norm == cv2.NORM_HAMMING else "L2")
-    coarse.ratio_match = fine.ratio_match = reference.ratio_match = rm
+    for module in (coarse, fine, reference):
+        patch(module, "ratio_match", rm)
     rh = _wrap(mu.ransac_homography, "RANSAC homography")
-    coarse.ransac_homography = strategies.ransac_homography = reference.ransac_homography = rh
-    guided.ransac_homography = rh
-    guided.guided_match = _wrap(fine.guided_match, "guided match")
-    refine.refine_points0 = _wrap(refine.refine_points0, "patch refinement block")
+    for module in (coarse, strategies, reference, guided):
+        patch(module, "ransac_homography", rh)
+    patch(guided, "guided_match", _wrap(fine.guided_match, "guided match"))
+    patch(refine, "refine_points0", _wrap(refine.refine_points0, "patch refinement block"))
+
+    def restore() -> None:
+        for module, name, old in reversed(undo):
+            setattr(module, name, old)
+
+    return restore
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -93,31 +108,47 @@ def main(argv: list[str] | None = None) -> None:
     for kv in args.set:
         key, _, raw = kv.partition("=")
         overrides[key] = {"true": True, "false": False}.get(raw.lower(), raw)
-    instrument()
+    restore = instrument()
+    try:
+        profile(args, overrides)
+    finally:
+        restore()
+
+
+def profile(args: argparse.Namespace, overrides: dict[str, Any]) -> None:
+    """Run and print each pair of `args.pairs` (`main`'s loop, with the primitives wrapped)."""
     by_name = {p.name: p for p in discover_pairs(args.data_root)}
     matcher = ExtraAffineMatcher(MatcherConfig.from_overrides(workers=0 if args.timeline else 1, **overrides))
-    for name in [n.strip() for n in args.pairs.split(",")]:
-        if name not in by_name:
-            raise SystemExit(f"no pair {name!r}; pairs: {', '.join(by_name)}")
-        pair = by_name[name]
-        img0, img1 = load_gray(pair.path0), load_gray(pair.path1)
-        run_pair(pair, img0, img1, "extra-affine", matcher)
-        CPU.clear()
-        CALLS.clear()
-        TIMELINE.clear()
-        c0 = time.process_time()
-        w0 = time.perf_counter()
-        row = run_pair(pair, img0, img1, "extra-affine", matcher)
-        cpu = time.process_time() - c0
-        stages = ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items())
-        print(f"{name}: path {row['path']}, {row['points']} points at {100 * row['precision']:.2f} %, "
-              f"{cpu:.2f} CPU s; stages (wall s): {stages}")
-        if args.timeline:
-            for start, end, thread, what in sorted(TIMELINE):
-                print(f"    {start - w0:.3f}-{end - w0:.3f} s ({end - start:.3f})  {thread:12s} {what}")
-            continue
-        for k, v in sorted(CPU.items(), key=lambda kv: -kv[1]):
-            print(f"    {k:28s} {v:6.3f} CPU s  {100 * v / cpu:5.1f} %  ({CALLS[k]} calls)")
+    try:
+        for name in [n.strip() for n in args.pairs.split(",")]:
+            profile_one(by_name, name, matcher, args.timeline)
+    finally:
+        matcher.close()
+
+
+def profile_one(by_name: dict[str, Any], name: str, matcher: ExtraAffineMatcher, timeline: bool) -> None:
+    """Run pair `name` twice (the first warms up) and print the second run's profile."""
+    if name not in by_name:
+        raise SystemExit(f"no pair {name!r}; pairs: {', '.join(by_name)}")
+    pair = by_name[name]
+    img0, img1 = load_gray(pair.path0), load_gray(pair.path1)
+    run_pair(pair, img0, img1, "extra-affine", matcher)
+    CPU.clear()
+    CALLS.clear()
+    TIMELINE.clear()
+    c0 = time.process_time()
+    w0 = time.perf_counter()
+    row = run_pair(pair, img0, img1, "extra-affine", matcher)
+    cpu = time.process_time() - c0
+    stages = ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items())
+    print(f"{name}: path {row['path']}, {row['points']} points at {100 * row['precision']:.2f} %, "
+          f"{cpu:.2f} CPU s; stages (wall s): {stages}")
+    if timeline:
+        for start, end, thread, what in sorted(TIMELINE):
+            print(f"    {start - w0:.3f}-{end - w0:.3f} s ({end - start:.3f})  {thread:12s} {what}")
+        return
+    for k, v in sorted(CPU.items(), key=lambda kv: -kv[1]):
+        print(f"    {k:28s} {v:6.3f} CPU s  {100 * v / cpu:5.1f} %  ({CALLS[k]} calls)")
 
 
 if __name__ == "__main__":

@@ -88,10 +88,9 @@ class ExtraAffineMatcher:
             # what the originals' evidence says, recorded whether or not the adaptive paths act on it
             ref, plan = plan_from_decision(ctx, decision)
             planned = plan.path
-            # the originals every path reads at full resolution: the target of a known reference, both
-            # images for the originals path
-            prefetch_originals(ctx, [] if ref is None else ([ref, 1 - ref] if plan.path == "originals" and cfg.adaptive
-                                                            else [1 - ref]))
+            if ref is not None:  # the originals the path reads at full resolution
+                both = cfg.adaptive and plan.path == "originals"
+                prefetch_originals(ctx, [ref, 1 - ref] if both else [1 - ref])
             if cfg.adaptive:
                 best, path, path_reason = adaptive_paths(ctx, decision, ref, plan)
             else:
