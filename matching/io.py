@@ -80,7 +80,7 @@ def to_bgr_u8(img: NDArray) -> NDArray[np.uint8]:
 def _check_size(path: Path, img: NDArray) -> None:
     h, w = img.shape[:2]
     if min(h, w) < MIN_IMAGE_SIDE:
-        raise InputError(f"{path}: image is {w}x{h} px, smaller than the {MIN_IMAGE_SIDE} px minimum")
+        raise InputError(f"{path}: image is {w}x{h} px; each side must be at least {MIN_IMAGE_SIDE} px")
 
 
 def load_gray(path: str | Path) -> NDArray[np.uint8]:

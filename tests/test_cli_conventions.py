@@ -153,6 +153,24 @@ def test_subfolders_of_images_are_searched_and_names_keep_the_relative_path(tmp_
     assert scan_scene(flat, max_size=0)[0].names == ["x.jpg"]
 
 
+def test_symlinked_subfolders_are_entered_once_and_loops_end(tmp_path):
+    """Links back to a parent once made the listing recurse ~40 levels (two of them: without
+    end); a second link to one folder listed its photos twice."""
+    from recon.core.scene import list_candidates
+
+    images = tmp_path / "images"
+    _photo(images / "a.jpg", 96, 64, 0)
+    _photo(tmp_path / "elsewhere" / "b.jpg", 96, 64, 1)
+    (images / "loop1").symlink_to("..")
+    (images / "loop2").symlink_to(".")
+    (images / "linked").symlink_to(tmp_path / "elsewhere")
+    (images / "linked_again").symlink_to(tmp_path / "elsewhere")
+    names, _ = list_candidates(images)
+    assert names[0] == "a.jpg" and names.count("linked/b.jpg") == 1 and "linked_again/b.jpg" not in names
+    # the link to the scene folder is entered once (it holds images/ itself, already seen)
+    assert all(n.count("/") <= 2 for n in names)
+
+
 @pytest.mark.parametrize("model,num_params", [("PINHOLE", 4), ("SIMPLE_PINHOLE", 3), ("OPENCV", 8)])
 def test_camera_model_reaches_the_database(tmp_path, model, num_params):
     from recon.config import RunConfig

@@ -124,6 +124,12 @@ def test_unreadable_file(image_pair, tmp_path, capsys):
     _one_line_error(capsys, "locked.png")
 
 
+def test_negative_workers_are_refused(image_pair, capsys):
+    a, b = image_pair
+    assert main(["match", str(a), str(b), "--workers", "-3"]) == 2
+    _one_line_error(capsys, "--workers -3", ">= 0")
+
+
 def test_tiny_image(image_pair, tmp_path, capsys):
     a, _ = image_pair
     tiny = tmp_path / "tiny.png"

@@ -324,6 +324,24 @@ def test_colmap_text_warns_about_names_with_spaces(run_dir, scene, tmp_path):
     assert any(im["name"] == "my view_00.png" for im in read_images_bin(res.model_dir / "images.bin").values())
 
 
+def test_a_flat_scene_exports_into_its_run_folder(tmp_path):
+    """Photos directly in SCENE_DIR are listed from its top level only: the default destination
+    under SCENE_DIR/recon is allowed there (it was refused as "inside the image folder"), while
+    a subfolder of an images/ folder is still refused (`recon run` lists those recursively)."""
+    from recon.export.target import check_target
+
+    flat = tmp_path / "flat"
+    (flat / "recon").mkdir(parents=True)
+    dst = check_target(flat / "recon" / "export" / "3dgs", flat / "recon", flat, overwrite=False)
+    assert dst == (flat / "recon" / "export" / "3dgs").resolve()
+    nested = tmp_path / "nested"
+    (nested / "images").mkdir(parents=True)
+    with pytest.raises(UserError, match="inside the scene's image folder"):
+        check_target(nested / "images" / "gs", nested / "recon", nested / "images", overwrite=False)
+    with pytest.raises(UserError, match="would replace the scene's image folder"):
+        check_target(flat, tmp_path / "elsewhere", flat, overwrite=True)
+
+
 # errors and atomicity ------------------------------------------------------------------------
 def test_user_errors(run_dir, scene, tmp_path):
     with pytest.raises(UserError, match="no model"):

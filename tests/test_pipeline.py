@@ -239,6 +239,32 @@ def test_resume_recomputes_only_missing_pairs(scene, first_run, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_run_stopped_after_replacing_the_model_leaves_no_contradicting_outputs(scene, first_run, tmp_path,
+                                                                               monkeypatch):
+    """A rerun with other mapper options, stopped between the new sparse/0 and the export stage:
+    the old report ("ok", the old options) and points.ply once stayed beside the new model."""
+    from recon.core.stages.export import Export
+
+    out1, rep1, _ = first_run
+    out = tmp_path / "out"
+    shutil.copytree(out1, out)
+
+    def stopped(self, run):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Export, "run", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        _run(scene, out, seed=1)  # another seed: the sfm stage maps again and replaces sparse/0
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "incomplete" and "again" in report["message"]
+    assert not (out / "points.ply").exists() and (out / "sparse" / "0").is_dir()
+    monkeypatch.undo()
+    again, _ = _run(scene, out, seed=1)
+    assert again.ok and again.model_reused and (out / "points.ply").is_file()
+    assert json.loads((out / "report.json").read_text())["status"] == "ok"
+
+
+@pytest.mark.slow
 def test_resume_after_killed_process(scene, tmp_path):
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}

@@ -308,6 +308,26 @@ def test_point_cloud_and_stats_of_no_model(tmp_path):
     assert registered_names(None) == []
 
 
+def test_point_cloud_of_a_model_read_back_is_the_same_bytes(tmp_path):
+    """A rerun reads its model back from disk, whose point map iterates in another order:
+    points.ply is written in point id order, so it does not change between identical runs."""
+    db = tmp_path / "database.db"
+    synthesize(db)
+    rec = _map(db).reconstruction
+    # as a mapper does: many points made and half of them dropped again (the hash map grows)
+    made = [rec.add_point3D(np.array([k, 0.0, 5.0]), pycolmap.Track(), np.array([1, 2, 3], np.uint8))
+            for k in range(5000)]
+    for pid in made[::2]:
+        rec.delete_point3D(pid)
+    model_dir = tmp_path / "sparse" / "0"
+    write_model_atomic(rec, model_dir)
+    assert list(rec.points3D.keys()) != list(pycolmap.Reconstruction(str(model_dir)).points3D.keys())
+    fresh, again = tmp_path / "fresh.ply", tmp_path / "again.ply"
+    write_points_ply(rec, fresh)
+    write_points_ply(pycolmap.Reconstruction(str(model_dir)), again)
+    assert fresh.read_bytes() == again.read_bytes()
+
+
 def test_the_pipeline_maps_with_colmaps_full_resolution_thresholds_unless_asked_to_scale():
     """Photos matched at half size (px_scale 2): the mapper keeps COLMAP's 4 px reprojection
     filter, as stock does; `sfm.scale_thresholds` doubles it."""

@@ -103,6 +103,8 @@ def match_command(
         raise UserError(f"unknown variant {variant!r}; choose 'default' or 'paper'")
     if not (th > 0 and np.isfinite(th)):
         raise UserError(f"--th {th}: must be a positive number of pixels")
+    if workers < 0:
+        raise UserError(f"--workers {workers}: must be >= 0 (0 = all cores)")
     from recon.viz.rerun_log import find_viewer, log_single_pair, parse_sink
 
     try:

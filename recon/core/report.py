@@ -4,7 +4,8 @@
 
 * `schema_version` (`SCHEMA_VERSION`; bumped when a key is renamed or changes meaning; reports
   without it are version 1) and `versions` (the tool, Python, pycolmap, OpenCV, numpy);
-* `status`: "ok", or "no_model" when SfM registered nothing (then `message` says why);
+* `status`: "ok", or "no_model" when SfM registered nothing (then `message` says why), or
+  "incomplete" while a new model replaces an older one (`recon.core.stages.sfm.replace_model`);
 * `num_images` (usable images), `registered_images`, `num_points3D`, `mean_track_length` and
   `mean_reprojection_error` (px) of the kept (largest) model, `num_models`, `model_sizes`;
 * `tracks`: track lengths of the *verified* match graph before SfM, with keypoint merging

@@ -150,11 +150,14 @@ def not_regular_images(image_dir: Path) -> list[tuple[str, str]]:
 def list_candidates(image_dir: Path, recursive: bool | None = None) -> tuple[list[str], list[str]]:
     """(image file names, other file names) in `image_dir`, both sorted; with `recursive` (default:
     when the folder is an `images/` folder), in its subfolders too, named by their relative path
-    with `/` (hidden folders are not entered)."""
+    with `/` (hidden folders are not entered). Symlinked subfolders are followed, each real
+    folder once: a link back to a parent (a loop) or a second link to the same folder is not
+    entered again, so the listing ends and holds no photo twice."""
     if recursive is None:
         recursive = image_dir.name == "images"
     images: list[str] = []
     others: list[str] = []
+    seen: set[Path] = {image_dir.resolve()}
 
     def walk(folder: Path, prefix: str) -> None:
         try:
@@ -165,6 +168,10 @@ def list_candidates(image_dir: Path, recursive: bool | None = None) -> tuple[lis
             if p.name.startswith("."):
                 continue
             if recursive and p.is_dir():
+                real = p.resolve()
+                if real in seen:
+                    continue
+                seen.add(real)
                 walk(p, f"{prefix}{p.name}/")
             elif p.is_file():
                 (images if p.suffix.lower() in IMAGE_EXTS else others).append(prefix + p.name)
@@ -197,7 +204,7 @@ def _decode_one(path: Path, max_size: int | None) -> tuple[NDArray[np.uint8], in
         return "not a readable image (corrupt or truncated data, or unknown format)"
     h, w = img.shape[:2]
     if min(h, w) < MIN_IMAGE_SIDE:
-        return f"image is {w}x{h} px, smaller than the {MIN_IMAGE_SIDE} px minimum"
+        return f"image is {w}x{h} px; each side must be at least {MIN_IMAGE_SIDE} px"
     gray = to_gray_u8(img)
     del img
     digest = hashlib.sha1(gray.tobytes() + str(gray.shape).encode()).hexdigest()[:20]

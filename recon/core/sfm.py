@@ -612,14 +612,16 @@ def registered_names(rec: pycolmap.Reconstruction | None) -> list[str]:
 def write_points_ply(rec: pycolmap.Reconstruction, path: str | Path, clean: bool = False) -> int:
     """points.ply (xyz + colour) with open3d, optionally without statistical outliers; atomic.
 
+    Points in ascending point3D id, so the file is the same bytes whether the model was just
+    mapped or read back from disk (pycolmap's map iterates in another order then).
     Returns the number of points written.
     """
     import open3d as o3d
 
     path = Path(path)
-    pts = rec.points3D
-    xyz = np.array([p.xyz for p in pts.values()], np.float64).reshape(-1, 3)
-    rgb = np.array([p.color for p in pts.values()], np.float64).reshape(-1, 3) / 255.0
+    pts = [p for _, p in sorted(rec.points3D.items())]
+    xyz = np.array([p.xyz for p in pts], np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in pts], np.float64).reshape(-1, 3) / 255.0
     pc = o3d.geometry.PointCloud()
     pc.points = o3d.utility.Vector3dVector(xyz)
     pc.colors = o3d.utility.Vector3dVector(rgb)

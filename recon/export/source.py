@@ -55,7 +55,8 @@ def load_source(out_dir: str | Path) -> ExportSource:
     """Resolve OUT_DIR, read its model and check that every registered photo is on disk."""
     out = Path(out_dir).expanduser()
     if not out.is_dir():
-        raise UserError(f"{out_dir}: no such folder (give a `recon run` output folder)")
+        what = "not a folder" if out.exists() else "no such folder"
+        raise UserError(f"{out_dir}: {what} (give a `recon run` output folder)")
     out = out.resolve()
     model_dir = out / MODEL_SUBDIR
     if not all((model_dir / f"{n}.bin").is_file() for n in ("cameras", "images", "points3D")):

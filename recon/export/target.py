@@ -3,9 +3,10 @@
 Rules (each refusal is a one-line `UserError`):
 
 * `DIR` may not be, or contain, the run folder or the scene's image folder (replacing it would
-  delete them), nor lie inside the image folder (the next `recon run` would take the exported
-  images for photos of the scene) or inside the run's `sparse/` or `cache/` (`recon run`
-  rewrites those).
+  delete them), nor lie inside an `images/` folder (the next `recon run` would take the exported
+  images for photos of the scene; photos directly in SCENE_DIR are listed from its top level
+  only, so its subfolders, e.g. the default `SCENE_DIR/recon/export/...`, are allowed) or
+  inside the run's `sparse/` or `cache/` (`recon run` rewrites those).
 * An existing non-empty `DIR` is replaced only with `overwrite`, and only when it is a previous
   export (it holds `EXPORT_MARKER`), never somebody else's folder.
 
@@ -40,7 +41,8 @@ def check_target(to: Path, out_dir: Path, image_dir: Path, overwrite: bool) -> P
     for protected, what in ((out_dir, "the run folder"), (image_dir, "the scene's image folder")):
         if _inside(protected, dst):
             raise UserError(f"export folder {dst} would replace {what} {protected}; choose another --to")
-    if _inside(dst, image_dir):
+    if image_dir.name == "images" and _inside(dst, image_dir):  # photos at SCENE_DIR's top level: only
+        # that level is listed (`recon.core.scene.list_candidates`), so a subfolder (OUT/export/...) is no photo
         raise UserError(f"export folder {dst} is inside the scene's image folder {image_dir}; "
                         "choose another --to outside it")
     for sub in ("sparse", "cache"):

@@ -12,6 +12,10 @@ the state record (a reused model has no growth events). Options: `sfm.num_thread
 `sfm.scale_thresholds`, `sfm.final_ba_loss`, `sfm.final_ba_scale_px`,
 `sfm.final_ba_outlier_scales`, `sfm.final_ba_principal_point`, `seed`; the mapper's tuned
 options are in `recon.core.sfm`.
+
+Before the new model replaces an older one, `report.json` says "incomplete" and the older
+`points.ply` goes (`replace_model`): a run stopped between here and the export stage leaves
+outputs that agree with each other, not a new model beside the old run's report and points.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from recon.core import sfm
 from recon.core.context import Run
 from recon.core.global_sfm import global_options, run_global
 from recon.core.global_sfm import options_summary as global_options_summary
-from recon.core.report import options_dict
+from recon.core.report import options_dict, write_report
 from recon.core.state import fingerprint
 
 log = logging.getLogger(__name__)
@@ -131,6 +135,25 @@ class Sfm:
         run.data.reconstruction = rec
         if rec is None:
             return None  # nothing to reuse next time
-        sfm.write_model_atomic(rec, self.model_dir(run))
+        replace_model(run, rec, self.model_dir(run))
         return {"num_models": res.num_models, "model_sizes": res.model_sizes, "sfm_growth": res.growth,
                 "sfm_attempts": report.sfm_attempts, "final_ba": report.final_ba}
+
+
+INCOMPLETE_MESSAGE = ("the run stopped after writing the model to sparse/0 and before points.ply and this report; "
+                      "run the same command again to finish (its stages are reused)")
+
+
+def replace_model(run: Run, rec: pycolmap.Reconstruction, model_dir: Path) -> None:
+    """Write `rec` to `model_dir` (atomically), first marking `OUT/report.json` "incomplete" and
+    removing `OUT/points.ply`: both describe the model being replaced until the export stage
+    writes them again, so a run stopped in between must not leave them claiming it."""
+    report = run.report
+    status, message = report.status, report.message
+    report.status, report.message = "incomplete", INCOMPLETE_MESSAGE
+    try:
+        write_report(report, run.out / "report.json")
+    finally:
+        report.status, report.message = status, message
+    (run.out / "points.ply").unlink(missing_ok=True)
+    sfm.write_model_atomic(rec, model_dir)
