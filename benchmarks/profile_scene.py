@@ -28,6 +28,8 @@ from recon.core.report import read_report
 
 NESTED = {"refine": "ransac"}
 """Matcher stages timed inside another one (child: parent)."""
+LEVEL_PREFIX = "level:"
+"""The escalation levels' own timings (`matching.strategies.escalate`), inside "escalation"."""
 
 
 def pair_stage_seconds(pair_dir: Path) -> tuple[dict[str, float], int]:
@@ -45,6 +47,9 @@ def pair_stage_seconds(pair_dir: Path) -> tuple[dict[str, float], int]:
     for child, parent in NESTED.items():
         if child in total and parent in total:
             total[parent] -= total[child]
+    for child in [k for k in total if k.startswith(LEVEL_PREFIX)]:  # each escalation level, inside "escalation"
+        if "escalation" in total:
+            total["escalation"] -= total[child]
     return dict(total), n
 
 

@@ -195,12 +195,15 @@ ESCALATION: tuple[Level, ...] = (TopK(), Swap(), ViewPairs(), Steep(), Mser(), T
 
 def escalate(ctx: MatchContext, best: Attempt, levels: tuple[Level, ...] = ESCALATION) -> Attempt:
     """Run `levels` in order while the best attempt has fewer than `escalation.min_inliers`
-    verified matches; the attempt with the most verified matches wins (the earlier on ties)."""
+    verified matches; the attempt with the most verified matches wins (the earlier on ties).
+    Each level that runs records its wall seconds as `timings["level:<label>"]`."""
     for level in levels:
         if best.verified >= ctx.cfg.escalation.min_inliers:
             break
         if level.applies(ctx, best):
-            best = max(best, level.run(ctx, best), key=lambda a: a.verified)
+            with ctx.timed(f"level:{level.label}"):
+                att = level.run(ctx, best)
+            best = max(best, att, key=lambda a: a.verified)
     return best
 
 

@@ -53,6 +53,10 @@ def test_evd_shop_is_solved_by_escalation(shared_data):
     assert "both images simulated, final homography" in res.reference_reason
     n_ok, precision = _correct(res, read_homography(e / "h" / "shop.txt"))
     assert n_ok >= 20 and precision >= 0.5, (n_ok, precision, res.escalation)
+    # each level that ran is timed, within the escalation's own time, and none after the winner
+    levels = {k: v for k, v in res.timings.items() if k.startswith("level:")}
+    assert "level:pairs" in levels and "level:steep" not in levels
+    assert sum(levels.values()) <= res.timings["escalation"] + 1e-6
 
 
 def test_escalation_disabled_never_escalates(monkeypatch):

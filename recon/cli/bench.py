@@ -3,7 +3,9 @@
 `recon bench scale` measures time, memory and registration against the number of photos
 (see `recon.eval.bench_scale`); `recon bench tilt` renders frontal/oblique pairs of a textured plane
 with exact homographies and counts the pairs each method solves per viewing angle
-(`recon.eval.bench_tilt`)."""
+(`recon.eval.bench_tilt`); `recon bench posed ROOT` matches real photo pairs of scenes with GT cameras
+and judges each method's relative pose and epipolar precision per angle between the cameras
+(`recon.eval.bench_posed`)."""
 
 from __future__ import annotations
 
@@ -165,6 +167,73 @@ def tilt_cmd(
     console = Console(width=None if sys.stdout.isatty() else 160)
     print_report(rows, console=console)
     console.print(tilt_table(rows))
+    if json_out is not None:
+        typer.echo(f"wrote {len(rows)} rows to {json_out}")
+
+
+def build_posed_matchers(names: list[str], seed: int, variant: str) -> dict:
+    """One PairMatcher per method name for 3D pairs: no final homography anywhere (the posed
+    benchmark's common essential-matrix filter replaces it); extra-affine from its `variant`."""
+    from matching.registry import get_matcher
+    from recon.errors import UserError
+
+    try:
+        return {m: get_matcher(m, seed=seed, final_homography=False, **({"variant": variant} if m == "extra-affine" else {}))
+                for m in names}
+    except ValueError as e:
+        raise UserError(str(e)) from None
+
+
+@bench_app.command("posed")
+def posed_cmd(
+    root: Annotated[Path, typer.Argument(help="A scene folder with GT cameras in gt/ (Strecha .camera files or "
+                                              "a COLMAP text model), or a folder of such scenes.", metavar="ROOT")],
+    scenes: Annotated[Optional[str], typer.Option("--scenes", help="Comma-separated scene names (default: every "
+                                                                   "scene with GT cameras).")] = None,
+    methods: Annotated[Optional[str], typer.Option("--methods", help="Comma-separated methods.")]
+        = "extra-affine,asift,sift",
+    per_bin: Annotated[int, typer.Option("--per-bin", min=0, help="Pairs per 15° bin of the angle between the "
+                                                                  "cameras, per scene (0 = all).")] = 3,
+    max_angle: Annotated[float, typer.Option("--max-angle", help="Widest angle between the cameras, degrees.")]
+        = 120.0,
+    max_size: Annotated[int, typer.Option("--max-size", min=64, help="Working resolution (longer side, px).")] = 1024,
+    th: Annotated[float, typer.Option("--th", help="Correct: symmetric epipolar distance under the true cameras, "
+                                                   "px at the working size.")] = math.sqrt(3.0),
+    variant: Annotated[str, typer.Option("--variant", help="extra-affine's preset: default, paper or multiview "
+                                                           "(its final homography off in every case).")]
+        = "default",
+    json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
+                                                     help="Write the rows to this JSON file.")] = None,
+    progress: Annotated[bool, progress_option()] = True,
+    seed: Annotated[int, seed_option()] = 0,
+) -> None:
+    """Real wide-baseline pairs with GT cameras: pose error, correct matches and time per angle between the cameras."""
+    import sys
+
+    from rich.console import Console
+
+    from recon.errors import UserError
+    from recon.eval.bench_posed import discover_posed_pairs, posed_tables, run_posed_bench
+
+    names = parse_methods(methods)
+    if not th > 0 or not math.isfinite(th):
+        raise UserError(f"--th must be a positive number of pixels, got {th}")
+    if not 0 < max_angle <= 180:
+        raise UserError(f"--max-angle must be in (0, 180] degrees, got {max_angle}")
+    root = root.expanduser()
+    if not root.is_dir():
+        raise UserError(f"{root}: no such folder")
+    wanted = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
+    pairs = discover_posed_pairs(root, wanted, per_bin, max_angle)
+    if not pairs:
+        raise UserError(f"{root}: no scene with GT cameras (gt/cameras/*.camera or gt/cameras.txt + images.txt) "
+                        "and covisible pairs" + (f" among {', '.join(wanted)}" if wanted else ""))
+    matchers = build_posed_matchers(names, seed, variant)
+    rows = run_posed_bench(pairs, names, matchers, max_size=max_size, th=th, seed=seed, json_path=json_out,
+                           progress=progress)
+    console = Console(width=None if sys.stdout.isatty() else 200)
+    for table in posed_tables(rows):
+        console.print(table)
     if json_out is not None:
         typer.echo(f"wrote {len(rows)} rows to {json_out}")
 
