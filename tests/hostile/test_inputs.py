@@ -17,7 +17,7 @@ BAD_FILES = {  # name -> what recon must say about it
     "zero.png": "empty file",
     "truncated.jpg": "not a readable image",
     "text.jpg": "not a readable image",
-    "tiny.png": "smaller than",
+    "tiny.png": "must be at least",
     "dir.png": "a folder",
     "gone.jpg": "broken symbolic link",
     "pipe.jpg": "not a regular file",  # reading a FIFO would block for ever
