@@ -161,3 +161,26 @@ def test_pair_that_does_not_match_exits_zero_with_reason(image_pair, tmp_path, c
     assert main(["match", str(a), str(flat)]) == 0
     out = capsys.readouterr().out
     assert "no match" in out
+
+
+@pytest.mark.slow
+def test_multiview_variant_matches_a_3d_pair_without_a_homography(image_pair, corner_scene, tmp_path, capsys):
+    """`--variant multiview` (`recon run`'s preset) on two views of the rendered corner (two
+    walls): no final homography, and its matches lie on the true epipolar lines of the rendered
+    cameras."""
+    from recon.eval.bench_posed import fundamental_from_cameras, relative_pose_gt, symmetric_epipolar_px
+    from recon.eval.gt import find_gt
+
+    a, b = image_pair
+    js = tmp_path / "mv.json"
+    assert main(["match", str(a), str(b), "--variant", "multiview", "--json", str(js)]) == 0
+    capsys.readouterr()
+    data = json.loads(js.read_text())
+    assert data["H_1_from_0"] is None and data["matches"] >= 100
+    gt = find_gt(corner_scene)
+    cam0, cam1 = gt["view_00.png"], gt["view_01.png"]
+    F = fundamental_from_cameras(cam0.K, cam1.K, *relative_pose_gt(cam0, cam1))
+    d = symmetric_epipolar_px(F, np.array(data["points0"]), np.array(data["points1"]))
+    assert np.mean(d <= 2.0) >= 0.95, np.percentile(d, [50, 90])
+    assert main(["match", str(a), str(b), "--variant", "plain"]) == 2
+    _one_line_error(capsys, "plain", "multiview")

@@ -86,8 +86,9 @@ def match_command(
     json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file,
                                             help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
-    variant: str = typer.Option("default", "--variant", metavar=choices_metavar(("default", "paper")),
-                                help="extra-affine only: the default, or the paper's plain reading."),
+    variant: str = typer.Option("default", "--variant", metavar=choices_metavar(("default", "paper", "multiview")),
+                                help="extra-affine only: the default, the paper's plain reading, or `recon run`'s "
+                                     "preset (no final homography: for photos of a 3D scene)."),
     seed: Annotated[int, seed_option()] = 0,
     workers: Annotated[int, workers_option("Threads of the extra-affine matcher's views (0 = all cores).")] = 0,
     rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
@@ -99,8 +100,8 @@ def match_command(
 
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    if variant not in ("default", "paper"):
-        raise UserError(f"unknown variant {variant!r}; choose 'default' or 'paper'")
+    if variant not in ("default", "paper", "multiview"):
+        raise UserError(f"unknown variant {variant!r}; choose 'default', 'paper' or 'multiview'")
     if not (th > 0 and np.isfinite(th)):
         raise UserError(f"--th {th}: must be a positive number of pixels")
     if workers < 0:
@@ -122,8 +123,8 @@ def match_command(
     overrides: dict = {"seed": seed}
     if method == "extra-affine":
         overrides["workers"] = workers
-        if variant == "paper":
-            overrides["variant"] = "paper"
+        if variant != "default":
+            overrides["variant"] = variant
     matcher = get_matcher(method, **overrides)
     result = matcher.match(store, names[0], names[1])
     summary = summarize(result, names, H_gt, th)
