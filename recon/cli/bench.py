@@ -228,9 +228,12 @@ def posed_cmd(
     if not pairs:
         raise UserError(f"{root}: no scene with GT cameras (gt/cameras/*.camera or gt/cameras.txt + images.txt) "
                         "and covisible pairs" + (f" among {', '.join(wanted)}" if wanted else ""))
+    from recon.log import quiet_colmap
+
     matchers = build_posed_matchers(names, seed, variant)
-    rows = run_posed_bench(pairs, names, matchers, max_size=max_size, th=th, seed=seed, json_path=json_out,
-                           progress=progress)
+    with quiet_colmap():  # the multiview preset's covariant SIFT would log each extraction
+        rows = run_posed_bench(pairs, names, matchers, max_size=max_size, th=th, seed=seed, json_path=json_out,
+                               progress=progress)
     console = Console(width=None if sys.stdout.isatty() else 200)
     for table in posed_tables(rows):
         console.print(table)

@@ -126,7 +126,10 @@ def match_command(
         if variant != "default":
             overrides["variant"] = variant
     matcher = get_matcher(method, **overrides)
-    result = matcher.match(store, names[0], names[1])
+    from recon.log import quiet_colmap
+
+    with quiet_colmap():  # the multiview preset's covariant SIFT would log each extraction
+        result = matcher.match(store, names[0], names[1])
     summary = summarize(result, names, H_gt, th)
     _print(summary, result)
     if result.num_matches == 0:
