@@ -147,6 +147,13 @@ def not_regular_images(image_dir: Path) -> list[tuple[str, str]]:
     return out
 
 
+def lists_subfolders(image_dir: Path) -> bool:
+    """Whether a scene's photos are read from the subfolders of `image_dir` too: yes for an
+    `images/` folder (as COLMAP's image reader), no for photos directly in SCENE_DIR (which also
+    holds gt/ and the outputs)."""
+    return image_dir.name == "images"
+
+
 def list_candidates(image_dir: Path, recursive: bool | None = None) -> tuple[list[str], list[str]]:
     """(image file names, other file names) in `image_dir`, both sorted; with `recursive` (default:
     when the folder is an `images/` folder), in its subfolders too, named by their relative path
@@ -154,7 +161,7 @@ def list_candidates(image_dir: Path, recursive: bool | None = None) -> tuple[lis
     folder once: a link back to a parent (a loop) or a second link to the same folder is not
     entered again, so the listing ends and holds no photo twice."""
     if recursive is None:
-        recursive = image_dir.name == "images"
+        recursive = lists_subfolders(image_dir)
     images: list[str] = []
     others: list[str] = []
     seen: set[Path] = {image_dir.resolve()}

@@ -40,12 +40,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from matching.fine import epipolar_pair_distance
 from matching.io import load_gray, resize_max
 from matching.memory import PeakRss
 from matching.registry import PairMatcher
 from matching.store import FeatureStore
-from recon.eval.bench_pairs import _clean, write_json
-from recon.eval.evaluate import pose_auc, rotation_angle_deg, vector_angle_deg
+from recon.core.jsonio import to_jsonable
+from recon.eval.bench_pairs import write_json
+from recon.eval.evaluate import pose_auc, relative_pose, rotation_angle_deg, vector_angle_deg
 from recon.eval.gt import GtCamera, find_gt
 
 BIN_DEG = 15.0
@@ -87,8 +89,7 @@ def scaled_K(K: NDArray[np.float64], size: tuple[int, int], new_size: tuple[int,
 
 def relative_pose_gt(cam0: GtCamera, cam1: GtCamera) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(R_1_from_0, t_1_from_0): x_cam1 = R x_cam0 + t for camera-frame points."""
-    R = cam1.R @ cam0.R.T
-    return R, cam1.t - R @ cam0.t
+    return relative_pose(cam0.cam_from_world, cam1.cam_from_world)
 
 
 def fundamental_from_cameras(K0: NDArray[np.float64], K1: NDArray[np.float64], R: NDArray[np.float64],
@@ -100,15 +101,9 @@ def fundamental_from_cameras(K0: NDArray[np.float64], K1: NDArray[np.float64], R
 
 
 def symmetric_epipolar_px(F_1_from_0: NDArray[np.float64], pts0: NDArray, pts1: NDArray) -> NDArray[np.float64]:
-    """Per match, the larger of the distances of x1 to x0's epipolar line and of x0 to x1's, px."""
-    p0 = np.hstack([np.asarray(pts0, np.float64).reshape(-1, 2), np.ones((len(pts0), 1))])
-    p1 = np.hstack([np.asarray(pts1, np.float64).reshape(-1, 2), np.ones((len(pts1), 1))])
-    l1 = p0 @ F_1_from_0.T  # lines in image 1
-    l0 = p1 @ F_1_from_0  # lines in image 0
-    num = np.abs(np.sum(p1 * l1, axis=1))
-    d1 = num / np.maximum(np.hypot(l1[:, 0], l1[:, 1]), 1e-12)
-    d0 = num / np.maximum(np.hypot(l0[:, 0], l0[:, 1]), 1e-12)
-    return np.maximum(d0, d1)
+    """Per match, the larger of the distances of x1 to x0's epipolar line and of x0 to x1's, px
+    (`matching.fine.epipolar_pair_distance` both ways)."""
+    return np.maximum(epipolar_pair_distance(F_1_from_0, pts0, pts1), epipolar_pair_distance(F_1_from_0.T, pts1, pts0))
 
 
 def covisible(cam0: GtCamera, cam1: GtCamera, margin: float = 0.1) -> bool:
@@ -246,21 +241,26 @@ def run_posed_bench(pairs: Sequence[PosedPair], methods: Sequence[str], matchers
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     rows: list[dict[str, Any]] = []
+    working: dict[Path, tuple[NDArray[np.uint8], NDArray[np.float64]]] = {}
+
+    def load(path: Path, cam: GtCamera) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
+        """(working image, its intrinsics), decoded once per photo (a photo is in many pairs)."""
+        if path not in working:
+            full = load_gray(path)
+            img, _ = resize_max(full, max_size)
+            working[path] = img, scaled_K(cam.K, (full.shape[1], full.shape[0]), (img.shape[1], img.shape[0]))
+        return working[path]
+
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=Console(stderr=True), transient=True, disable=not progress) as prog:
         task = prog.add_task("posed pairs", total=len(pairs) * len(methods))
         for pair in pairs:
-            imgs, Ks = [], []
-            for path, cam in ((pair.path0, pair.cam0), (pair.path1, pair.cam1)):
-                full = load_gray(path)
-                img, _ = resize_max(full, max_size)
-                imgs.append(img)
-                Ks.append(scaled_K(cam.K, (full.shape[1], full.shape[0]), (img.shape[1], img.shape[0])))
+            (img0, K0), (img1, K1) = load(pair.path0, pair.cam0), load(pair.path1, pair.cam1)
             for m in methods:
                 prog.update(task, description=f"{pair.name} [bold]{m}[/]")
                 store = FeatureStore()
-                store.add_image("0", imgs[0])
-                store.add_image("1", imgs[1])
+                store.add_image("0", img0)
+                store.add_image("1", img1)
                 with PeakRss() as mem:
                     t0 = time.perf_counter()
                     result = matchers[m].match(store, "0", "1")
@@ -271,8 +271,8 @@ def run_posed_bench(pairs: Sequence[PosedPair], methods: Sequence[str], matchers
                        "peak_mb": mem.peak_mb, "path": getattr(result, "path", ""),
                        "escalation": getattr(result, "escalation", ""), "timings": dict(result.timings),
                        "reason": result.reason, "max_size": max_size, "th": th,
-                       **evaluate_pair(pair, pts0, pts1, Ks[0], Ks[1], th, seed)}
-                rows.append(_clean(row))
+                       **evaluate_pair(pair, pts0, pts1, K0, K1, th, seed)}
+                rows.append(to_jsonable(row))
                 if on_row is not None:
                     on_row(rows[-1])
                 prog.advance(task)

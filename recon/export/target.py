@@ -25,6 +25,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from recon.core.scene import lists_subfolders
 from recon.errors import UserError
 
 EXPORT_MARKER = ".recon_export.json"
@@ -41,8 +42,8 @@ def check_target(to: Path, out_dir: Path, image_dir: Path, overwrite: bool) -> P
     for protected, what in ((out_dir, "the run folder"), (image_dir, "the scene's image folder")):
         if _inside(protected, dst):
             raise UserError(f"export folder {dst} would replace {what} {protected}; choose another --to")
-    if image_dir.name == "images" and _inside(dst, image_dir):  # photos at SCENE_DIR's top level: only
-        # that level is listed (`recon.core.scene.list_candidates`), so a subfolder (OUT/export/...) is no photo
+    if lists_subfolders(image_dir) and _inside(dst, image_dir):  # photos at SCENE_DIR's top level: a
+        # subfolder of it (OUT/export/...) is never read as photos
         raise UserError(f"export folder {dst} is inside the scene's image folder {image_dir}; "
                         "choose another --to outside it")
     for sub in ("sparse", "cache"):
