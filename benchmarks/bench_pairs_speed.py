@@ -3,6 +3,7 @@ issue 11 ("cheaper views"), side by side in one process:
 
     PYTHONPATH=. python benchmarks/bench_pairs_speed.py ../shared/data \
         --json benchmarks/results/pairs.json [--methods extra-affine,extra-affine-grid,asift] [--only graf]
+        [--variant root=fine.root_sift=true] [--tilt OUT]
 
 Methods (interleaved per pair, so every method of a pair runs under the same machine load):
 
@@ -10,7 +11,14 @@ Methods (interleaved per pair, so every method of a pair runs under the same mac
   reference's second side searched near the first side's view);
 * `extra-affine-grid`: the same with `coarse.search="grid"` and `coarse.settle_targeted=False`,
   i.e. the matcher as it was before (every view of the 45-view grid on every searched side);
-* `sift`, `orb`, `asift`, `aorb`: the baselines of `recon bench pairs` (stock 5 px RANSAC).
+* `sift`, `orb`, `asift`, `aorb`: the baselines of `recon bench pairs` (stock 5 px RANSAC);
+* `--variant LABEL=KEY=VALUE[,KEY=VALUE]` (repeatable): the default matcher with
+  `MatcherConfig.from_overrides` settings (a top-level field or a section's field:
+  `fine.root_sift=true`, `final_homography=false`), run as method LABEL.
+
+`--tilt OUT` runs on the rendered tilt pairs of `make bench-tilt` (four textures, six viewing
+angles, two azimuths, two zooms: 96 pairs with exact homographies, rendered into OUT, the two
+photo textures read from DATA_ROOT) instead of DATA_ROOT's pairs.
 
 Each method first matches the first pair once, untimed (thread pools, lazy imports and
 OpenCV's first calls would otherwise be charged to whichever method runs first; `--no-warmup`).
@@ -24,15 +32,19 @@ from __future__ import annotations
 import argparse
 import statistics
 from pathlib import Path
+from typing import Any
 
 from matching.memory import return_large_buffers_to_os
 from matching.registry import get_matcher
-from recon.eval.bench_pairs import DEFAULT_TH, discover_pairs, load_gray, print_report, run_bench, run_pair
+from recon.eval.bench_pairs import DEFAULT_TH, GtPair, discover_pairs, load_gray, print_report, run_bench, run_pair
 
-VARIANTS = {
+VARIANTS: dict[str, dict[str, Any]] = {
     "extra-affine": {},
     "extra-affine-grid": {"coarse__search": "grid", "coarse__settle_targeted": False},
 }
+TILT_ANGLES = (60.0, 70.0, 75.0, 80.0, 83.0, 85.0)  # `make bench-tilt`'s pairs
+TILT_AZIMUTHS = (0.0, 45.0)
+TILT_ZOOMS = (0.5, 1.0)
 
 
 def median_seconds(rows: list[dict], method: str, dataset: str | None = None) -> float | None:
@@ -41,11 +53,62 @@ def median_seconds(rows: list[dict], method: str, dataset: str | None = None) ->
     return statistics.median(s) if s else None
 
 
-def ratio_lines(rows: list[dict]) -> list[str]:
+def parse_variant(spec: str) -> tuple[str, dict[str, Any]]:
+    """`LABEL=KEY=VALUE[,KEY=VALUE]` as (label, `MatcherConfig.from_overrides` keywords); values
+    are read as bool ("true" / "false"), int, float or else kept as text."""
+    label, _, rest = spec.partition("=")
+    if not label:
+        raise SystemExit(f"--variant {spec!r}: expected LABEL=KEY=VALUE[,KEY=VALUE]")
+    overrides: dict[str, Any] = {}
+    for item in filter(None, (x.strip() for x in rest.split(","))):
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--variant {spec!r}: {item!r} is not KEY=VALUE")
+        value: Any = {"true": True, "false": False}.get(text.lower(), text)
+        if isinstance(value, str):
+            for cast in (int, float):
+                try:
+                    value = cast(text)
+                    break
+                except ValueError:
+                    pass
+        overrides[key.replace(".", "__", 1)] = value
+    return label, overrides
+
+
+def tilt_pairs(data_root: Path, out: Path) -> list[GtPair]:
+    """The rendered tilt pairs of `make bench-tilt`, written under `out`."""
+    from recon.eval.bench_tilt import parse_textures, tilt_views, write_pairs
+
+    textures = parse_textures(f"procedural:0,procedural:1,{data_root / 'oxford/graf/img1.png'},"
+                              f"{data_root / 'hpatches/v_dogman/1.png'}")
+    return write_pairs(out, textures, tilt_views(TILT_ANGLES, TILT_AZIMUTHS, zooms=TILT_ZOOMS))[0]
+
+
+def variant_lines(rows: list[dict], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Per extra-affine variant: pairs solved (precision >= 50 % with >= 20 correct), correct
+    matches in all, and against the default (`extra-affine`) pairs with more / fewer correct."""
+    base = {r["pair"]: r for r in rows if r["method"] == "extra-affine"}
+    lines = []
+    for m in variants:
+        mine = [r for r in rows if r["method"] == m]
+        if not mine:
+            continue
+        line = (f"{m}: solved {sum(r['precision'] >= 0.5 and r['correct'] >= 20 for r in mine)}/{len(mine)}, "
+                f"correct {sum(r['correct'] for r in mine)}")
+        if base and m != "extra-affine":
+            more = sum(r["correct"] > base[r["pair"]]["correct"] for r in mine if r["pair"] in base)
+            fewer = sum(r["correct"] < base[r["pair"]]["correct"] for r in mine if r["pair"] in base)
+            line += f"; against extra-affine: {more} pairs with more correct, {fewer} with fewer"
+        lines.append(line)
+    return lines
+
+
+def ratio_lines(rows: list[dict], variants: dict[str, dict[str, Any]] = VARIANTS) -> list[str]:
     """"X: median s over all pairs / graf, N x faster than asift" per extra-affine variant, and
     the per-pair after / before seconds."""
     lines = []
-    for m in VARIANTS:
+    for m in variants:
         for dataset, label in ((None, "all pairs"), ("oxford", "graf")):
             ours, base = median_seconds(rows, m, dataset), median_seconds(rows, "asift", dataset)
             if ours is None:
@@ -76,16 +139,25 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-warmup", action="store_true",
                     help="do not match the first pair once per method (untimed) before the run")
+    ap.add_argument("--variant", action="append", default=[],
+                    help="LABEL=KEY=VALUE[,KEY=VALUE]: the default matcher with these settings, as method LABEL")
+    ap.add_argument("--tilt", type=Path, default=None,
+                    help="render `make bench-tilt`'s 96 pairs into this folder and run on them")
     args = ap.parse_args()
     return_large_buffers_to_os()  # as the recon CLI does: the peak MB column is comparable with `recon bench pairs`
+    variants = {**VARIANTS, **dict(parse_variant(v) for v in args.variant)}
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    methods += [label for label in variants if label not in VARIANTS and label not in methods]
     matchers = {}
     for m in methods:
-        if m in VARIANTS:
-            matchers[m] = get_matcher("extra-affine", seed=args.seed, **VARIANTS[m])
+        if m in variants:
+            try:
+                matchers[m] = get_matcher("extra-affine", seed=args.seed, **variants[m])
+            except (TypeError, ValueError) as e:
+                raise SystemExit(f"--variant {m}: {e}") from None
         else:
             matchers[m] = get_matcher(m, seed=args.seed)
-    pairs = discover_pairs(args.data_root)
+    pairs = tilt_pairs(args.data_root, args.tilt) if args.tilt else discover_pairs(args.data_root)
     if args.only:
         pairs = [p for p in pairs if args.only.lower() in p.name.lower()]
     if not pairs:
@@ -96,7 +168,7 @@ def main() -> None:
             run_pair(pairs[0], img0, img1, m, matchers[m])
     rows = run_bench(pairs, methods, th=DEFAULT_TH, json_path=args.json, matchers=matchers)
     print_report(rows, th=DEFAULT_TH)
-    for line in ratio_lines(rows):
+    for line in ratio_lines(rows, variants) + variant_lines(rows, variants):
         print(line)
     if args.json is not None:
         print(f"wrote {len(rows)} rows to {args.json}")
