@@ -36,7 +36,7 @@ from typing import Any
 
 from matching.memory import return_large_buffers_to_os
 from matching.registry import get_matcher
-from recon.eval.bench_pairs import DEFAULT_TH, GtPair, discover_pairs, load_gray, print_report, run_bench, run_pair
+from recon.eval.bench_pairs import DEFAULT_TH, GtPair, discover_pairs, load_gray, print_report, run_bench, run_pair, solved
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "extra-affine": {},
@@ -86,7 +86,8 @@ def tilt_pairs(data_root: Path, out: Path) -> list[GtPair]:
 
 
 def variant_lines(rows: list[dict], variants: dict[str, dict[str, Any]]) -> list[str]:
-    """Per extra-affine variant: pairs solved (precision >= 50 % with >= 20 correct), correct
+    """Per extra-affine variant: pairs solved (`bench_pairs.solved`: precision >= 50 % with >= 20
+    correct, as `recon bench pairs` counts them), correct
     matches in all, and against the default (`extra-affine`) pairs with more / fewer correct."""
     base = {r["pair"]: r for r in rows if r["method"] == "extra-affine"}
     lines = []
@@ -94,7 +95,7 @@ def variant_lines(rows: list[dict], variants: dict[str, dict[str, Any]]) -> list
         mine = [r for r in rows if r["method"] == m]
         if not mine:
             continue
-        line = (f"{m}: solved {sum(r['precision'] >= 0.5 and r['correct'] >= 20 for r in mine)}/{len(mine)}, "
+        line = (f"{m}: solved {sum(map(solved, mine))}/{len(mine)}, "
                 f"correct {sum(r['correct'] for r in mine)}")
         if base and m != "extra-affine":
             more = sum(r["correct"] > base[r["pair"]]["correct"] for r in mine if r["pair"] in base)

@@ -52,6 +52,11 @@ class GtPair:
     dataset: str = ""  # "oxford", "hpatches", "evd"
 
 
+def solved(row: dict[str, Any]) -> bool:
+    """Whether a result row counts as solved (`SOLVED_MIN_PRECISION`, `SOLVED_MIN_CORRECT`)."""
+    return row["precision"] >= SOLVED_MIN_PRECISION and row["correct"] >= SOLVED_MIN_CORRECT
+
+
 # discovery --------------------------------------------------------------------------------------
 def _image(folder: Path, stem: str) -> Path | None:
     for ext in IMAGE_EXTS:
@@ -250,8 +255,7 @@ def summarize(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
         refs = [r["ref_correct"] for r in rs if r.get("ref_correct") is not None]
         out[m] = {
             "pairs": len(rs),
-            "solved": sum(1 for r in rs if r["precision"] >= SOLVED_MIN_PRECISION
-                          and r["correct"] >= SOLVED_MIN_CORRECT),
+            "solved": sum(map(solved, rs)),
             "median_seconds": statistics.median(r["seconds"] for r in rs),
             "mean_precision": statistics.fmean(r["precision"] for r in rs),
             "median_peak_mb": statistics.median(mems) if mems else None,
@@ -303,7 +307,7 @@ def print_report(rows: Sequence[dict[str, Any]], th: float = DEFAULT_TH, console
             t.add_section()
         prev = r["pair"]
         prec = 100 * r["precision"]
-        style = "green" if r["precision"] >= SOLVED_MIN_PRECISION and r["correct"] >= SOLVED_MIN_CORRECT else ""
+        style = "green" if solved(r) else ""
         t.add_row(r["pair"], r["method"], str(r["points"]), str(r["correct"]),
                   f"[{style}]{prec:.2f}[/]" if style else f"{prec:.2f}", f"{r['seconds']:.2f}",
                   _fmt(r.get("peak_mb"), ".0f"), _ref(r.get("ref_correct")), r.get("escalation") or "")

@@ -25,7 +25,7 @@ import numpy as np
 
 from matching.registry import PairMatcher
 from recon.errors import UserError
-from recon.eval.bench_pairs import SOLVED_MIN_CORRECT, SOLVED_MIN_PRECISION, GtPair, run_bench
+from recon.eval.bench_pairs import GtPair, run_bench, solved
 from scenes.texture import photo_texture, procedural_texture
 from scenes.tilt import Photometry, TiltView, render_tilt_pair
 
@@ -134,10 +134,6 @@ def run_tilt_bench(out: Path, textures: Sequence[TextureSpec], views: Sequence[T
         row.update(info[row["pair"]])
 
     return run_bench(pairs, methods, json_path=json_path, progress=progress, matchers=matchers, on_row=annotate)
-
-
-def solved(row: dict[str, Any]) -> bool:
-    return row["precision"] >= SOLVED_MIN_PRECISION and row["correct"] >= SOLVED_MIN_CORRECT
 
 
 def tilt_summary(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
