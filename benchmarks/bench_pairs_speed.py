@@ -36,6 +36,7 @@ from typing import Any
 
 from matching.memory import return_large_buffers_to_os
 from matching.registry import get_matcher
+from recon.errors import UserError
 from recon.eval.bench_pairs import DEFAULT_TH, GtPair, discover_pairs, load_gray, print_report, run_bench, run_pair, solved
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -158,7 +159,10 @@ def main() -> None:
                 raise SystemExit(f"--variant {m}: {e}") from None
         else:
             matchers[m] = get_matcher(m, seed=args.seed)
-    pairs = tilt_pairs(args.data_root, args.tilt) if args.tilt else discover_pairs(args.data_root)
+    try:
+        pairs = tilt_pairs(args.data_root, args.tilt) if args.tilt else discover_pairs(args.data_root)
+    except UserError as e:  # a texture photo missing under DATA_ROOT, an unreadable homography
+        raise SystemExit(f"error: {e}") from None
     if args.only:
         pairs = [p for p in pairs if args.only.lower() in p.name.lower()]
     if not pairs:

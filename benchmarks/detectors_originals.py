@@ -64,12 +64,13 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     ratios = [float(r) for r in args.ratios.split(",")]
+    pairs = [p for p in discover_pairs(args.data_root) if args.only.lower() in p.name.lower()]
+    if not pairs:
+        raise SystemExit(f"{args.data_root}: no ground-truth pairs matching {args.only!r}")
     rows = []
     print(f"{'pair':12s} {'detector':20s} {'keypoints':>13s} {'s':>5s} | "
           + " | ".join(f"ratio {r:g}: matches / <=sqrt3 / <=5 px / H inliers (<=5 px)" for r in ratios))
-    for pair in discover_pairs(args.data_root):
-        if args.only.lower() not in pair.name.lower():
-            continue
+    for pair in pairs:
         img0, img1 = load_gray(pair.path0), load_gray(pair.path1)
         for det in args.detectors.split(","):
             row = {"pair": pair.name, **one(img0, img1, pair.H_1_from_0, det, ratios)}
