@@ -36,6 +36,7 @@ from typing import Any
 
 from matching.memory import return_large_buffers_to_os
 from matching.registry import get_matcher
+from recon.config import matcher_options
 from recon.errors import UserError
 from recon.eval.bench_pairs import DEFAULT_TH, GtPair, discover_pairs, load_gray, print_report, run_bench, run_pair, solved
 
@@ -55,26 +56,23 @@ def median_seconds(rows: list[dict], method: str, dataset: str | None = None) ->
 
 
 def parse_variant(spec: str) -> tuple[str, dict[str, Any]]:
-    """`LABEL=KEY=VALUE[,KEY=VALUE]` as (label, `MatcherConfig.from_overrides` keywords); values
-    are read as bool ("true" / "false"), int, float or else kept as text."""
+    """`LABEL=KEY=VALUE[,KEY=VALUE]` as (label, `MatcherConfig.from_overrides` keywords): the keys
+    are `recon run --set matcher.KEY=VALUE`'s, checked and typed as it does
+    (`recon.config.matcher_options`; the seed comes from `--seed`)."""
     label, _, rest = spec.partition("=")
     if not label:
         raise SystemExit(f"--variant {spec!r}: expected LABEL=KEY=VALUE[,KEY=VALUE]")
-    overrides: dict[str, Any] = {}
+    options: dict[str, str] = {}
     for item in filter(None, (x.strip() for x in rest.split(","))):
         key, sep, text = item.partition("=")
         if not sep:
             raise SystemExit(f"--variant {spec!r}: {item!r} is not KEY=VALUE")
-        value: Any = {"true": True, "false": False}.get(text.lower(), text)
-        if isinstance(value, str):
-            for cast in (int, float):
-                try:
-                    value = cast(text)
-                    break
-                except ValueError:
-                    pass
-        overrides[key.replace(".", "__", 1)] = value
-    return label, overrides
+        options[key] = text
+    try:
+        typed = matcher_options("extra-affine", options)
+    except UserError as e:
+        raise SystemExit(f"--variant {label}: {e}") from None
+    return label, {key.replace(".", "__", 1): value for key, value in typed.items()}
 
 
 def tilt_pairs(data_root: Path, out: Path) -> list[GtPair]:

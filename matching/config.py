@@ -14,6 +14,7 @@ import ast
 import dataclasses
 import inspect
 import textwrap
+import typing
 from dataclasses import dataclass, field, fields, replace
 from functools import cache
 from typing import Any, Literal
@@ -29,6 +30,8 @@ from .refine import RefineConfig
 from .views import GridConfig
 
 Variant = Literal["default", "paper", "multiview"]
+VARIANTS: tuple[str, ...] = typing.get_args(Variant)
+"""The presets `MatcherConfig.from_overrides(variant=...)` knows, in that order."""
 
 
 @dataclass(frozen=True)

@@ -41,11 +41,11 @@ def test_affine_shape_matches_a_tilted_plane_that_plain_sift_does_not():
 
 
 def test_variant_spec_types_values_and_names_section_fields():
-    label, ov = bench_pairs_speed.parse_variant("root=fine.root_sift=true,fine.ratio=0.8,fine_top_k=3,seed=2")
+    label, ov = bench_pairs_speed.parse_variant("root=fine.root_sift=true,fine.ratio=0.8,fine_top_k=3,guided=off")
     assert label == "root"
-    assert ov == {"fine__root_sift": True, "fine__ratio": 0.8, "fine_top_k": 3, "seed": 2}
+    assert ov == {"fine__root_sift": True, "fine__ratio": 0.8, "fine_top_k": 3, "guided": False}
     assert bench_pairs_speed.parse_variant("base=") == ("base", {})
-    for bad in ("=fine.ratio=0.8", "x=fine.ratio"):
+    for bad in ("=fine.ratio=0.8", "x=fine.ratio", "x=fine.rootsift=true", "x=fine_top_k=two", "x=seed=2"):
         with pytest.raises(SystemExit):
             bench_pairs_speed.parse_variant(bad)
 

@@ -15,6 +15,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from matching.config import VARIANTS
 from recon.cli._options import check_textures, json_file
 from recon.cli.options import image_size as parse_image_size
 from recon.cli.options import (
@@ -199,8 +200,8 @@ def posed_cmd(
     max_size: Annotated[int, typer.Option("--max-size", min=64, help="Working resolution (longer side, px).")] = 1024,
     th: Annotated[float, typer.Option("--th", help="Correct: symmetric epipolar distance under the true cameras, "
                                                    "px at the working size.")] = math.sqrt(3.0),
-    variant: Annotated[str, typer.Option("--variant", help="extra-affine's preset: default, paper or multiview "
-                                                           "(its final homography off in every case).")]
+    variant: Annotated[str, typer.Option("--variant", help=f"extra-affine's preset: {', '.join(VARIANTS)} "
+                                                            "(its final homography off in every case).")]
         = "default",
     json_out: Annotated[Optional[Path], typer.Option("--json", callback=json_file,
                                                      help="Write the rows to this JSON file.")] = None,

@@ -10,6 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from matching.config import VARIANTS
 from matching.io import load_color, load_gray, read_homography
 from matching.metrics import DEFAULT_TH, gt_reference, precision
 from matching.registry import METHODS, get_matcher
@@ -86,7 +87,7 @@ def match_command(
     json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file,
                                             help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
-    variant: str = typer.Option("default", "--variant", metavar=choices_metavar(("default", "paper", "multiview")),
+    variant: str = typer.Option("default", "--variant", metavar=choices_metavar(VARIANTS),
                                 help="extra-affine only: the default, the paper's plain reading, or `recon run`'s "
                                      "preset (no final homography: for photos of a 3D scene)."),
     seed: Annotated[int, seed_option()] = 0,
@@ -100,8 +101,8 @@ def match_command(
 
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    if variant not in ("default", "paper", "multiview"):
-        raise UserError(f"unknown variant {variant!r}; choose 'default', 'paper' or 'multiview'")
+    if variant not in VARIANTS:
+        raise UserError(f"unknown variant {variant!r}; choose one of {', '.join(VARIANTS)}")
     if not (th > 0 and np.isfinite(th)):
         raise UserError(f"--th {th}: must be a positive number of pixels")
     if workers < 0:
