@@ -11,6 +11,8 @@ Methods (interleaved per pair, so every method of a pair runs under the same mac
   reference's second side searched near the first side's view);
 * `extra-affine-grid`: the same with `coarse.search="grid"` and `coarse.settle_targeted=False`,
   i.e. the matcher as it was before (every view of the 45-view grid on every searched side);
+* `extra-affine-exact-blur`: the default matcher with `views.simulate`'s exact anti-aliasing blur
+  instead of blurring by halving (`views.blur_compress_x`; the steep views before 2026-12-07);
 * `sift`, `orb`, `asift`, `aorb`: the baselines of `recon bench pairs` (stock 5 px RANSAC);
 * `--variant LABEL=KEY=VALUE[,KEY=VALUE]` (repeatable): the default matcher with
   `MatcherConfig.from_overrides` settings (a top-level field or a section's field:
@@ -34,8 +36,11 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+import matching.views as views
 from matching.memory import return_large_buffers_to_os
-from matching.registry import get_matcher
+from matching.registry import PairMatcher, get_matcher
+from matching.store import FeatureStore
+from matching.types import PairResult
 from recon.config import matcher_options
 from recon.errors import UserError
 from recon.eval.bench_pairs import DEFAULT_TH, GtPair, discover_pairs, load_gray, print_report, run_bench, run_pair, solved
@@ -47,6 +52,26 @@ VARIANTS: dict[str, dict[str, Any]] = {
 TILT_ANGLES = (60.0, 70.0, 75.0, 80.0, 83.0, 85.0)  # `make bench-tilt`'s pairs
 TILT_AZIMUTHS = (0.0, 45.0)
 TILT_ZOOMS = (0.5, 1.0)
+
+
+EXACT_BLUR = "extra-affine-exact-blur"
+
+
+class ExactBlur:
+    """A matcher run with `views.simulate`'s exact anti-aliasing blur (`views.ANTIALIAS_HALVING`
+    off for the call; the benchmark matches one pair at a time, so nothing else sees it)."""
+
+    name = EXACT_BLUR
+
+    def __init__(self, inner: PairMatcher):
+        self.inner = inner
+
+    def match(self, store: FeatureStore, name0: str, name1: str) -> PairResult:
+        views.ANTIALIAS_HALVING = False
+        try:
+            return self.inner.match(store, name0, name1)
+        finally:
+            views.ANTIALIAS_HALVING = True
 
 
 def median_seconds(rows: list[dict], method: str, dataset: str | None = None) -> float | None:
@@ -104,9 +129,10 @@ def variant_lines(rows: list[dict], variants: dict[str, dict[str, Any]]) -> list
     return lines
 
 
-def ratio_lines(rows: list[dict], variants: dict[str, dict[str, Any]] = VARIANTS) -> list[str]:
+def ratio_lines(rows: list[dict], variants: dict[str, dict[str, Any]] = VARIANTS,
+                before_method: str = "extra-affine-grid") -> list[str]:
     """"X: median s over all pairs / graf, N x faster than asift" per extra-affine variant, and
-    the per-pair after / before seconds."""
+    the per-pair after (`extra-affine`) / before (`before_method`) seconds."""
     lines = []
     for m in variants:
         for dataset, label in ((None, "all pairs"), ("oxford", "graf")):
@@ -118,14 +144,15 @@ def ratio_lines(rows: list[dict], variants: dict[str, dict[str, Any]] = VARIANTS
                 line += f", asift {base:.2f} s: {base / ours:.2f} x faster than asift"
             lines.append(line)
     after = {r["pair"]: r for r in rows if r["method"] == "extra-affine"}
-    before = {r["pair"]: r for r in rows if r["method"] == "extra-affine-grid"}
+    before = {r["pair"]: r for r in rows if r["method"] == before_method}
     for pair in after:
         if pair in before and after[pair]["seconds"] > 0:
             a, b = after[pair], before[pair]
             counts = ("identical" if (a["points"], a["correct"]) == (b["points"], b["correct"])
                       else f"{b['points']}/{b['correct']} -> {a['points']}/{a['correct']}")
             lines.append(f"{pair}: {b['seconds']:.2f} s -> {a['seconds']:.2f} s "
-                         f"({b['seconds'] / a['seconds']:.2f} x), points / correct {counts}")
+                         f"({b['seconds'] / a['seconds']:.2f} x), points / correct {counts}"
+                         + (f", escalation {a['escalation']}" if a.get("escalation") else ""))
     return lines
 
 
@@ -133,7 +160,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data_root", type=Path)
     ap.add_argument("--methods", default="extra-affine,extra-affine-grid,asift",
-                    help="comma-separated: extra-affine, extra-affine-grid, sift, orb, asift, aorb")
+                    help=f"comma-separated: extra-affine, extra-affine-grid, {EXACT_BLUR}, sift, orb, asift, aorb")
     ap.add_argument("--json", type=Path, default=None, help="write the rows here")
     ap.add_argument("--only", default=None, help="only pairs whose name contains this text")
     ap.add_argument("--seed", type=int, default=0)
@@ -148,9 +175,11 @@ def main() -> None:
     variants = {**VARIANTS, **dict(parse_variant(v) for v in args.variant)}
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     methods += [label for label in variants if label not in VARIANTS and label not in methods]
-    matchers = {}
+    matchers: dict[str, PairMatcher] = {}
     for m in methods:
-        if m in variants:
+        if m == EXACT_BLUR:
+            matchers[m] = ExactBlur(get_matcher("extra-affine", seed=args.seed))
+        elif m in variants:
             try:
                 matchers[m] = get_matcher("extra-affine", seed=args.seed, **variants[m])
             except (TypeError, ValueError) as e:
@@ -171,7 +200,9 @@ def main() -> None:
             run_pair(pairs[0], img0, img1, m, matchers[m])
     rows = run_bench(pairs, methods, th=DEFAULT_TH, json_path=args.json, matchers=matchers)
     print_report(rows, th=DEFAULT_TH)
-    for line in ratio_lines(rows, variants) + variant_lines(rows, variants):
+    shown = {**variants, EXACT_BLUR: {}} if EXACT_BLUR in methods else variants
+    before = EXACT_BLUR if EXACT_BLUR in methods else "extra-affine-grid"
+    for line in ratio_lines(rows, shown, before) + variant_lines(rows, shown):
         print(line)
     if args.json is not None:
         print(f"wrote {len(rows)} rows to {args.json}")

@@ -58,3 +58,25 @@ def test_variant_lines_count_solved_pairs_and_compare_with_the_default():
     lines = bench_pairs_speed.variant_lines(rows, {"extra-affine": {}, "root": {}})
     assert lines[0] == "extra-affine: solved 1/2, correct 40"
     assert lines[1] == "root: solved 1/2, correct 65; against extra-affine: 2 pairs with more correct, 0 with fewer"
+
+
+def test_exact_blur_method_turns_halving_off_for_its_call_only():
+    import matching.views as views
+
+    seen = []
+
+    class Inner:
+        name = "extra-affine"
+
+        def match(self, store, name0, name1):
+            seen.append(views.ANTIALIAS_HALVING)
+            if name0 == "bad":
+                raise RuntimeError("boom")
+            return "result"
+
+    m = bench_pairs_speed.ExactBlur(Inner())
+    assert m.match(None, "a", "b") == "result"
+    with pytest.raises(RuntimeError):
+        m.match(None, "bad", "b")
+    assert seen == [False, False]
+    assert views.ANTIALIAS_HALVING is True  # restored after each call, raising or not

@@ -9,7 +9,16 @@ import numpy as np
 import pytest
 
 from matching.types import ViewParams
-from matching.views import GridConfig, antialias_sigma, apply_affine, map_to_original, simulate, view_affine, view_grid
+from matching.views import (
+    GridConfig,
+    antialias_sigma,
+    apply_affine,
+    blur_compress_x,
+    map_to_original,
+    simulate,
+    view_affine,
+    view_grid,
+)
 
 
 def test_default_grid_has_the_papers_45_views_per_tilt():
@@ -78,6 +87,49 @@ def test_antialias_blur_only_where_the_view_shrinks():
     soft = simulate(img, ViewParams(4.0, 0.0, 1.0), "linear", antialias=True).image
     assert sharp.shape == soft.shape
     assert soft[10:-10, 5:-5].std() < sharp[10:-10, 5:-5].std()  # blur removes aliased noise
+
+
+def _texture(h: int = 240, w: int = 320) -> np.ndarray:
+    """Band-limited random texture (blurred noise), a stand-in for a photo's content."""
+    import cv2
+    noise = (np.random.default_rng(3).random((h, w)) * 255).astype(np.uint8)
+    return cv2.GaussianBlur(noise, (0, 0), 1.5)
+
+
+@pytest.mark.parametrize("view", [ViewParams(8.0, 0.0, 1.0), ViewParams(16.0, 37.0, 1.0), ViewParams(22.6274, 90.0, 1.0),
+                                  ViewParams(11.3137, 20.0, 2.0)])
+def test_steep_views_blurred_by_halving_match_the_exact_blur(view):
+    img = _texture()
+    fast = simulate(img, view, "linear", antialias=True)
+    exact = simulate(img, view, "linear", antialias=True, halving=False)
+    assert fast.image.shape == exact.image.shape
+    np.testing.assert_array_equal(fast.A_view_from_orig, exact.A_view_from_orig)
+    inside = exact.mask > 0
+    diff = np.abs(fast.image.astype(int) - exact.image.astype(int))[inside]
+    assert diff.mean() < 1.5 and np.percentile(diff, 99) <= 6  # uint8 rounding of the stages, no shift
+    # the exact blur is what the halving replaces: without any blur the views differ far more
+    sharp = simulate(img, view, "linear", antialias=False).image.astype(int)
+    assert np.abs(sharp - exact.image.astype(int))[inside].mean() > 3 * diff.mean()
+
+
+def test_halving_keeps_a_point_where_the_view_affine_puts_it():
+    img = np.zeros((200, 300), np.uint8)
+    img[90:111, 140:161] = 255  # a 21 px square centred on (150, 100)
+    view = ViewParams(16.0, 30.0, 1.0)
+    sv = simulate(img, view, "linear", antialias=True)
+    x, y = apply_affine(sv.A_view_from_orig, [[150.0, 100.0]])[0]
+    w = sv.image.astype(np.float64)
+    ys, xs = np.mgrid[:w.shape[0], :w.shape[1]]
+    assert np.hypot((w * xs).sum() / w.sum() - x, (w * ys).sum() / w.sum() - y) < 0.5
+
+
+def test_halving_only_where_the_blur_is_wide():
+    img = _texture()
+    assert blur_compress_x(img, 6.3, 8.0)[1] == 8  # t = 8: three halvings, then the rest (0.37 px)
+    assert blur_compress_x(img, 18.1, 22.6274)[1] == 16
+    assert blur_compress_x(img, 1.0, 5.66)[1] == 1  # the tied grid's widest blur (t / s = 1.6): exact
+    assert blur_compress_x(img, 4.4, 5.66)[1] == 1  # below `HALVING_MIN_TILT` (the two-sided grid's t = 5.66)
+    assert blur_compress_x(img, 18.1, 22.6274, halving=False)[1] == 1
 
 
 def test_fine_views_skip_rotation_duplicates_and_can_add_the_original():
