@@ -180,7 +180,8 @@ def blur_compress_x(img: NDArray[np.uint8], sigma: float, t: float, halving: boo
     blurred until it carries `HALVING_SIGMA` current px and every other column is dropped; the
     rest of the variance is blurred at the last size. The variances add up to sigma^2, so the
     result is the same blur to within a few grey levels inside the view (uint8 rounding of each
-    stage), at 2-8x less time for t >= 8 (docs/decisions.md, "Anti-aliasing by halving").
+    stage), at 2-8x less time for t >= 8 (docs/decisions.md, "Anti-aliasing by halving for the
+    steep views").
     f = 1 (the exact blur) whenever sigma < `HALVING_SIGMA` (t / s < 2) or t < `HALVING_MIN_TILT`:
     every view of the paper's grid is unchanged."""
     V = sigma * sigma
@@ -188,10 +189,9 @@ def blur_compress_x(img: NDArray[np.uint8], sigma: float, t: float, halving: boo
     f = 1
     out = img
     while halving and t >= HALVING_MIN_TILT and 2 * f <= t and (HALVING_SIGMA * f) ** 2 <= V:
-        add = math.sqrt(max(HALVING_SIGMA**2 - done / (f * f), 0.0))  # current px
-        if add > 0.05:
-            out = cv2.GaussianBlur(out, (0, 0), sigmaX=add, sigmaY=0.01)
-            done = (HALVING_SIGMA * f) ** 2
+        add = math.sqrt(HALVING_SIGMA**2 - done / (f * f))  # current px; done <= (HALVING_SIGMA f / 2)^2
+        out = cv2.GaussianBlur(out, (0, 0), sigmaX=add, sigmaY=0.01)
+        done = (HALVING_SIGMA * f) ** 2
         out = np.ascontiguousarray(out[:, ::2])
         f *= 2
     rest = math.sqrt(max(V - done, 0.0)) / f
