@@ -34,6 +34,36 @@ VARIANTS: tuple[str, ...] = typing.get_args(Variant)
 """The presets `MatcherConfig.from_overrides(variant=...)` knows, in that order."""
 
 
+def _check_path(section: Any, sec_name: str, path: list[str], key: str) -> None:
+    """ValueError unless `path` names a field of `section`, through nested sections (e.g.
+    escalation's `mser.pool`), naming the valid fields where it does not."""
+    obj, where = section, sec_name
+    for i, name in enumerate(path):
+        valid = {f.name for f in fields(obj)}
+        if name not in valid:
+            raise ValueError(f"unknown option {key!r}; {where} has {', '.join(sorted(valid))}")
+        if i < len(path) - 1:
+            obj = getattr(obj, name)
+            if not dataclasses.is_dataclass(obj):
+                raise ValueError(f"unknown option {key!r}; {where}.{name} is not a section")
+            where = f"{where}.{name}"
+
+
+def _replace_nested(obj: Any, vals: dict[str, Any]) -> Any:
+    """`obj` (a frozen dataclass) with `vals` set, keys dotted through nested dataclasses."""
+    here: dict[str, Any] = {}
+    deeper: dict[str, dict[str, Any]] = {}
+    for key, value in vals.items():
+        head, sep, rest = key.partition(".")
+        if sep:
+            deeper.setdefault(head, {})[rest] = value
+        else:
+            here[head] = value
+    for head, sub in deeper.items():
+        here[head] = _replace_nested(getattr(obj, head), sub)
+    return replace(obj, **here)
+
+
 @dataclass(frozen=True)
 class MatcherConfig:
     """Everything the extra-affine matcher does, with the paper's choices where they measure best
@@ -230,17 +260,15 @@ class MatcherConfig:
                 if sec not in sections:
                     raise ValueError(f"unknown config section {sec!r} in {key!r}; "
                                      f"sections: {', '.join(sorted(sections))}")
-                valid = {f.name for f in fields(getattr(base, sec))}
-                if name not in valid:
-                    raise ValueError(f"unknown option {key!r}; {sec} has {', '.join(sorted(valid))}")
-                by_section.setdefault(sec, {})[name] = value
+                _check_path(getattr(base, sec), sec, name.replace("__", ".").split("."), key)
+                by_section.setdefault(sec, {})[name.replace("__", ".")] = value
             elif key in top:
                 flat[key] = value
             else:
                 raise ValueError(f"unknown matcher option {key!r}; valid: {', '.join(sorted(top))} "
                                  f"(or section__field for {', '.join(sorted(sections))})")
         for sec, vals in by_section.items():
-            flat[sec] = replace(getattr(base, sec), **vals)
+            flat[sec] = _replace_nested(getattr(base, sec), vals)
         return replace(base, **flat)
 
     @property

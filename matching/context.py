@@ -67,6 +67,7 @@ class MatchContext:
     reference: int = 0
     targeted_coarse_inliers: int = 0  # the most ORB inliers of the adaptive targeted search, if it ran
     fallen_through: Attempt | None = None  # the best adaptive attempt that verified too little
+    attempts: list[Attempt] = field(default_factory=list)  # every attempt of the escalation so far, in order
 
     def size(self, i: int) -> tuple[int, int]:
         """(width, height) of image `i` (0 or 1)."""

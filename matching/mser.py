@@ -23,6 +23,7 @@ Coordinates: keypoints are (x, y) in original image px, OpenCV's pixel-centre co
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -77,6 +78,11 @@ class MserConfig:
     """LAF check: largest rotation between a match's frames mapped by H, degrees."""
     laf_max_scale: float = 2.0
     """LAF check: largest singular-value ratio (either way) between the mapped frames."""
+    pool: Literal["best", "verified"] = "best"
+    """What the regions are pooled with: "best" = the best attempt so far (all its matches);
+    "verified" = that and the verified matches of every other attempt of the escalation (MODS
+    accumulates every step's correspondences), so that which of several weak attempts verified a
+    few more matches does not decide what the level builds on (`mserlevel.earlier_verified`)."""
 
 
 def mser_key(cfg: MserConfig) -> str:

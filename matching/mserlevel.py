@@ -65,19 +65,58 @@ def pooled_with(best: FineMatches, kpts_ref: np.ndarray, kpts_target: np.ndarray
                        {**best.per_view, "mser": n})
 
 
+def earlier_verified(ctx: MatchContext, best: Attempt) -> FineMatches:
+    """`best`'s matches followed by the verified matches of every other attempt of the escalation
+    (`ctx.attempts`), turned to `best`'s reference side and without those repeating a pooled
+    match within 1.5 px in both images (`MserConfig.pool` = "verified")."""
+    ref_pts, tgt_pts, dist = [], [], []
+    for att in ctx.attempts:
+        if att is best or len(att.fine.matches) == 0:
+            continue
+        fm = att.fine
+        p_ref, p_t = fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]]
+        mask = att.verified_mask if att.verified_mask is not None else ctx.verify(p_ref, p_t)[1]
+        if att.reference != best.reference:
+            p_ref, p_t = p_t, p_ref
+        ref_pts.append(p_ref[mask])
+        tgt_pts.append(p_t[mask])
+        dist.append(fm.distances[mask])
+    if not ref_pts:
+        return best.fine
+    base = best.fine
+    a = np.concatenate([base.kpts_ref[base.matches[:, 0]], *ref_pts]).astype(np.float32)
+    b = np.concatenate([base.kpts_target[base.matches[:, 1]], *tgt_pts]).astype(np.float32)
+    d = np.concatenate([base.distances, *dist]).astype(np.float32)
+    n = len(base.matches)
+    idx = np.stack([np.arange(len(a)), np.arange(len(a))], 1).astype(np.int32)
+    keep_idx, _ = dedupe_by_location(a, b, idx[n:], d[n:])  # the added matches, deduplicated among themselves
+    added = keep_idx[:, 0]
+    near_base = np.zeros(len(added), bool)
+    if n and len(added):  # ... and against `best`'s own matches
+        cell = 1.5
+        key_base = {tuple(k) for k in np.concatenate([np.floor(a[:n] / cell), np.floor(b[:n] / cell)], 1).astype(np.int64)}
+        keys = np.concatenate([np.floor(a[added] / cell), np.floor(b[added] / cell)], 1).astype(np.int64)
+        near_base = np.array([tuple(k) in key_base for k in keys], bool)
+    added = added[~near_base]
+    pooled = pooled_with(base, a[added], b[added], d[added])
+    pooled.per_view = {**base.per_view, "earlier_verified": len(added)}
+    return pooled
+
+
 def mser_attempt(ctx: MatchContext, best: Attempt, cfg: MserConfig) -> Attempt:
     """The `mser` level (module doc): `best`'s reference side stays the query side."""
     ref = best.reference
     fa, fb = pooled_mser(ctx, ref, cfg), pooled_mser(ctx, 1 - ref, cfg)
     mm, d = fginn_match(fa, fb, cfg.ratio, cfg.fginn_px, 8, ctx.cfg.seed)
     mm, d = dedupe_by_location(fa.kpts, fb.kpts, mm, d)
-    pool = pooled_with(best.fine, fa.kpts[mm[:, 0]], fb.kpts[mm[:, 1]], d)
+    base = earlier_verified(ctx, best) if cfg.pool == "verified" else best.fine
+    pool = pooled_with(base, fa.kpts[mm[:, 0]], fb.kpts[mm[:, 1]], d)
     p_ref, p_t = pool.kpts_ref[pool.matches[:, 0]], pool.kpts_target[pool.matches[:, 1]]
     dropped = 0
     if len(mm) and len(p_ref) >= 4 and fa.frames is not None and fb.frames is not None:
         H, inl = ransac_homography(p_ref, p_t, 3.0, seed=ctx.cfg.seed)
         if H is not None:
-            first = len(best.fine.matches)
+            first = len(base.matches)
             ok = laf_consistent(H, fa.kpts[mm[:, 0]], fa.frames[mm[:, 0]], fb.frames[mm[:, 1]], cfg)
             drop = np.zeros(len(pool.matches), bool)
             drop[first:] = inl[first:] & ~ok

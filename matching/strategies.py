@@ -197,12 +197,14 @@ def escalate(ctx: MatchContext, best: Attempt, levels: tuple[Level, ...] = ESCAL
     """Run `levels` in order while the best attempt has fewer than `escalation.min_inliers`
     verified matches; the attempt with the most verified matches wins (the earlier on ties).
     Each level that runs records its wall seconds as `timings["level:<label>"]`."""
+    ctx.attempts.append(best)
     for level in levels:
         if best.verified >= ctx.cfg.escalation.min_inliers:
             break
         if level.applies(ctx, best):
             with ctx.timed(f"level:{level.label}"):
                 att = level.run(ctx, best)
+            ctx.attempts.append(att)
             best = max(best, att, key=lambda a: a.verified)
     return best
 

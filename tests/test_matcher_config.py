@@ -75,9 +75,21 @@ def test_from_overrides_takes_flat_sectioned_and_dotted_keys():
     assert not cfg.final_homography and cfg.escalation.min_coarse_inliers == 15  # the preset's, kept
 
 
+def test_from_overrides_reaches_nested_sections():
+    """`recon run --set matcher.escalation.steep.enabled=false` and the benchmarks' variants set
+    fields of sections inside sections (escalation's steep and mser levels)."""
+    cfg = MatcherConfig.from_overrides(**{"escalation.steep.enabled": False, "escalation__mser__pool": "verified",
+                                          "escalation.steep.tilts": (8.0,), "escalation.min_inliers": 20})
+    assert not cfg.escalation.steep.enabled and cfg.escalation.steep.tilts == (8.0,)
+    assert cfg.escalation.mser.pool == "verified" and cfg.escalation.min_inliers == 20
+    assert cfg.escalation.mser.ratio == MatcherConfig().escalation.mser.ratio  # the rest kept
+
+
 @pytest.mark.parametrize("key, names", [("nonsense", "fine_top_k"), ("coarse__nonsense", "rank_by"),
                                         ("coarse.nonsense", "rank_by"), ("nosection__x", "escalation"),
-                                        ("seed__x", "coarse"), ("coarse__seed", "rank_by")])
+                                        ("seed__x", "coarse"), ("coarse__seed", "rank_by"),
+                                        ("escalation.mser.nonsense", "laf_max_angle_deg"),
+                                        ("escalation.min_inliers.x", "not a section")])
 def test_unknown_overrides_raise_naming_the_valid_ones(key, names):
     with pytest.raises(ValueError, match=names):
         MatcherConfig.from_overrides(**{key: 1})

@@ -131,3 +131,35 @@ def test_mser_attempt_pools_with_the_best_attempt_and_keeps_its_matches():
     err = np.linalg.norm(p0 @ A[:, :2].T + A[:, 2] - p1, axis=1)
     assert f.per_view["mser"] >= 20 and (err < 3).mean() >= 0.8, (f.per_view, (err < 3).mean())
     assert att.verified >= 20
+
+
+def test_pool_verified_adds_the_other_attempts_verified_matches_on_the_reference_side():
+    """`MserConfig.pool = "verified"`: after the best attempt's matches come the verified matches of
+    the escalation's other attempts, an attempt of the other reference turned around, and none
+    that repeats a pooled match."""
+    from matching.mserlevel import earlier_verified
+
+    store = FeatureStore()
+    store.add_image("a", np.zeros((64, 64), np.uint8))
+    store.add_image("b", np.zeros((64, 64), np.uint8))
+    ctx = MatchContext(store, ("a", "b"), MatcherConfig(workers=1), [])
+
+    def attempt(ref, pts_ref, pts_t, mask):
+        n = len(pts_ref)
+        fm = FineMatches(np.float32(pts_ref), np.float32(pts_t), np.stack([np.arange(n)] * 2, 1).astype(np.int32),
+                         np.arange(n, dtype=np.float32), {})
+        return Attempt("x", ref, fm, [], [], int(np.sum(mask)), verified_mask=np.array(mask))
+
+    best = attempt(0, [[10, 10]], [[20, 20]], [True])
+    other_side = attempt(1, [[31, 30], [41, 40], [20.5, 20.2]], [[30, 30], [40, 40], [10.2, 10.3]], [True, False, True])
+    same_side = attempt(0, [[50, 50], [50.3, 50.2]], [[60, 60], [60.2, 60.1]], [True, True])
+    ctx.attempts = [best, other_side, same_side]
+    pooled = earlier_verified(ctx, best)
+    pairs = {(tuple(np.round(pooled.kpts_ref[i])), tuple(np.round(pooled.kpts_target[j]))) for i, j in pooled.matches}
+    assert (tuple(pooled.kpts_ref[pooled.matches[0, 0]]), tuple(pooled.kpts_target[pooled.matches[0, 1]])) == ((10, 10), (20, 20))
+    assert ((30, 30), (31, 30)) in pairs  # image 1 was the other attempt's reference: turned around
+    assert ((40, 40), (41, 40)) not in pairs  # not verified
+    assert len(pooled.matches) == 3  # best's, the turned one, one of the two repeats at (50, 50); best's repeat dropped
+    assert pooled.per_view["earlier_verified"] == 2
+    ctx.attempts = [best]
+    assert earlier_verified(ctx, best) is best.fine  # nothing else: the best attempt alone
