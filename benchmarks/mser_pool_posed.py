@@ -6,8 +6,8 @@
 The pairs are `recon bench posed`'s (3 per 15° bin and scene, up to 120°), here only those of at
 least `--min-angle` degrees between the cameras (where the escalation runs); each variant is the
 pair matcher with `final_homography=False`, as the posed benchmark builds it, plus the variant's
-settings (`bench_pairs_speed.py`'s `LABEL=KEY=VALUE[,KEY=VALUE]`, checked and typed as `recon run
---set matcher.KEY=VALUE`). Prints every pair where a variant differs from the default or the
+settings (`bench_pairs_speed.parse_variant`'s `LABEL=KEY=VALUE[,KEY=VALUE]`, checked and typed as
+`recon run --set matcher.KEY=VALUE`). Prints every pair where a variant differs from the default or the
 default escalates (level, correct matches, pose error in degrees, seconds), then each method's
 summary (solved, AUC@5 / 10 / 20°). docs/decisions.md, "Pooling the escalation's verified
 matches for `mser`", is its first use.
@@ -19,22 +19,10 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from bench_pairs_speed import parse_variant  # the sibling script (this folder is on sys.path when run)
+
 from matching.registry import PairMatcher, get_matcher
-from recon.config import matcher_options
-from recon.errors import UserError
 from recon.eval.bench_posed import discover_posed_pairs, run_posed_bench, summarize_posed
-
-
-def parse_variant(spec: str) -> tuple[str, dict[str, Any]]:
-    """`LABEL=KEY=VALUE[,KEY=VALUE]` as (label, matcher overrides)."""
-    label, sep, rest = spec.partition("=")
-    if not sep or not label or not rest:
-        raise SystemExit(f"--variant {spec!r}: expected LABEL=KEY=VALUE[,KEY=VALUE]")
-    raw = dict(item.split("=", 1) for item in rest.split(",") if "=" in item)
-    try:
-        return label, matcher_options("extra-affine", raw)
-    except UserError as e:
-        raise SystemExit(f"--variant {label}: {e}") from None
 
 
 def main() -> None:

@@ -89,15 +89,11 @@ def earlier_verified(ctx: MatchContext, best: Attempt) -> FineMatches:
     d = np.concatenate([base.distances, *dist]).astype(np.float32)
     n = len(base.matches)
     idx = np.stack([np.arange(len(a)), np.arange(len(a))], 1).astype(np.int32)
-    keep_idx, _ = dedupe_by_location(a, b, idx[n:], d[n:])  # the added matches, deduplicated among themselves
-    added = keep_idx[:, 0]
-    near_base = np.zeros(len(added), bool)
-    if n and len(added):  # ... and against `best`'s own matches
-        cell = 1.5
-        key_base = {tuple(k) for k in np.concatenate([np.floor(a[:n] / cell), np.floor(b[:n] / cell)], 1).astype(np.int64)}
-        keys = np.concatenate([np.floor(a[added] / cell), np.floor(b[added] / cell)], 1).astype(np.int64)
-        near_base = np.array([tuple(k) in key_base for k in keys], bool)
-    added = added[~near_base]
+    # one cell of `dedupe_by_location` keeps its closest descriptor; ranking `best`'s own matches
+    # first drops every added match that repeats one of them, and the added ones among themselves
+    rank = np.concatenate([np.full(n, -1.0, np.float32), d[n:]])
+    keep, _ = dedupe_by_location(a, b, idx, rank)
+    added = keep[keep[:, 0] >= n, 0]
     pooled = pooled_with(base, a[added], b[added], d[added])
     pooled.per_view = {**base.per_view, "earlier_verified": len(added)}
     return pooled
