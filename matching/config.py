@@ -29,7 +29,7 @@ from .reference import ReferenceConfig
 from .refine import RefineConfig
 from .views import GridConfig
 
-Variant = Literal["default", "paper", "multiview"]
+Variant = Literal["default", "paper", "multiview", "3d"]
 VARIANTS: tuple[str, ...] = typing.get_args(Variant)
 """The presets `MatcherConfig.from_overrides(variant=...)` knows, in that order."""
 
@@ -238,15 +238,37 @@ class MatcherConfig:
                              coarse=CoarseConfig(search="grid", settle_targeted=False))
 
     @staticmethod
+    def pair3d() -> MatcherConfig:
+        """For one pair of photos of a 3D scene (`recon match --variant 3d`): the pair preset's
+        adaptive paths and escalation levels, without its final homography (fundamental-matrix
+        verification), with the unwarped originals fine-matched too, by COLMAP's SIFT with
+        affine shape but no domain-size pooling ("colmap-sift-affine"), and the epipolar-guided
+        round.
+
+        Why: on a wide 3D pair the simulated view rectifies one surface and the escalation sees
+        only what it matches; the covariant originals add the rest of the scene and give the
+        epipolar round a true F to grow from. On `recon bench posed`'s 46 real pairs
+        (fountain_P11, castle_P30, 8-114°, 1024 px; docs/decisions.md, "A preset for one 3D
+        pair"): solved 38 -> 41, AUC@5 / 10 / 20° 0.730 / 0.788 / 0.830 -> 0.792 / 0.850 /
+        0.882, median correct 190 -> 840, for 1.49x the total time (about 5 s of extraction per
+        pair: 5x on narrow pairs, a quarter on those the pair preset sends to `mser`). Pooling
+        ("colmap-sift", `multiview`'s) solved 40 for 3.3x; `multiview` itself 42 for a median
+        18.7 s per pair. fountain_P11 0001-0010 (99°): `mser`, 26.8° off in 32.5 s -> the fast
+        path at 0.88° in 9.7 s; lost: castle_P30 0028-0029 (51°, 2.8° -> 8.0°)."""
+        return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
+                             fine=FineConfig(original_detector="colmap-sift-affine"))
+
+    @staticmethod
     def from_overrides(**kw: Any) -> MatcherConfig:
-        """Build from flat overrides: `variant` ("default", "paper", "multiview"), top-level
+        """Build from flat overrides: `variant` ("default", "paper", "multiview", "3d"), top-level
         fields, or a section's field as `section__field` (or `section.field`, via `**{...}`).
 
         e.g. `from_overrides(final_homography=False, coarse__rank_by="matches", seed=3)`.
         Unknown names raise ValueError listing the valid ones.
         """
         variant = kw.pop("variant", "default")
-        presets = {"default": MatcherConfig, "paper": MatcherConfig.paper, "multiview": MatcherConfig.multiview}
+        presets = {"default": MatcherConfig, "paper": MatcherConfig.paper, "multiview": MatcherConfig.multiview,
+                   "3d": MatcherConfig.pair3d}
         if variant not in presets:
             raise ValueError(f"unknown variant {variant!r}; choose one of {', '.join(presets)}")
         base = presets[variant]()

@@ -164,16 +164,18 @@ def test_pair_that_does_not_match_exits_zero_with_reason(image_pair, tmp_path, c
 
 
 @pytest.mark.slow
-def test_multiview_variant_matches_a_3d_pair_without_a_homography(image_pair, corner_scene, tmp_path, capfd):
-    """`--variant multiview` (`recon run`'s preset) on two views of the rendered corner (two
-    walls): no final homography, its matches lie on the true epipolar lines of the rendered
-    cameras, and COLMAP's covariant extraction does not log to stderr."""
+@pytest.mark.parametrize("variant", ["multiview", "3d"])
+def test_3d_variants_match_a_3d_pair_without_a_homography(variant, image_pair, corner_scene, tmp_path, capfd):
+    """`--variant multiview` (`recon run`'s preset) and `--variant 3d` (one 3D pair) on two views
+    of the rendered corner (two walls): no final homography, their matches lie on the true
+    epipolar lines of the rendered cameras, and COLMAP's covariant extraction does not log to
+    stderr."""
     from recon.eval.bench_posed import fundamental_from_cameras, relative_pose_gt, symmetric_epipolar_px
     from recon.eval.gt import find_gt
 
     a, b = image_pair
     js = tmp_path / "mv.json"
-    assert main(["match", str(a), str(b), "--variant", "multiview", "--json", str(js)]) == 0
+    assert main(["match", str(a), str(b), "--variant", variant, "--json", str(js)]) == 0
     assert capfd.readouterr().err.strip() == ""
     data = json.loads(js.read_text())
     assert data["H_1_from_0"] is None and data["matches"] >= 100

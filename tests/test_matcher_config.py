@@ -31,6 +31,7 @@ def _sub_configs(cfg) -> list:
 
 @pytest.mark.parametrize("build", [lambda: MatcherConfig(seed=7), lambda: MatcherConfig.from_overrides(seed=7),
                                    lambda: MatcherConfig.from_overrides(variant="multiview", seed=7),
+                                   lambda: MatcherConfig.from_overrides(variant="3d", seed=7),
                                    lambda: dataclasses.replace(MatcherConfig.paper(), seed=7)])
 def test_the_seed_has_one_source_however_the_config_is_built(build):
     cfg = build()
@@ -73,6 +74,17 @@ def test_from_overrides_takes_flat_sectioned_and_dotted_keys():
     assert cfg.fine_top_k == 3 and cfg.coarse.rank_by == "matches"
     assert cfg.escalation.min_inliers == 12 and cfg.grid.n == 4
     assert not cfg.final_homography and cfg.escalation.min_coarse_inliers == 15  # the preset's, kept
+
+
+def test_the_3d_preset_keeps_the_pair_escalation_without_a_homography():
+    """`variant="3d"`: one 3D pair, so F verification and the covariant originals, but every
+    escalation level of the pair preset (unlike `multiview`, which drops the costly ones)."""
+    cfg = MatcherConfig.from_overrides(variant="3d")
+    assert not cfg.final_homography and cfg.verify_model == "fundamental"
+    assert cfg.fine_include_original and cfg.guided_epipolar
+    assert cfg.fine.original_detector == "colmap-sift-affine"
+    assert cfg.escalation == MatcherConfig().escalation and cfg.escalation.mser.enabled
+    assert cfg.adaptive == MatcherConfig().adaptive
 
 
 def test_from_overrides_reaches_nested_sections():

@@ -88,8 +88,9 @@ def match_command(
                                             help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
     variant: str = typer.Option("default", "--variant", metavar=choices_metavar(VARIANTS),
-                                help="extra-affine only: the default, the paper's plain reading, or `recon run`'s "
-                                     "preset (no final homography: for photos of a 3D scene)."),
+                                help="extra-affine only: the default (planar pairs), the paper's plain reading, "
+                                     "`recon run`'s preset, or 3d (two photos of a 3D scene: no final homography, "
+                                     "covariant SIFT on the originals, every escalation level)."),
     seed: Annotated[int, seed_option()] = 0,
     workers: Annotated[int, workers_option("Threads of the extra-affine matcher's views (0 = all cores).")] = 0,
     rerun: str = typer.Option("none", "--rerun", help="Log the pair to Rerun: save:PATH, spawn, connect[:URL] or none."),
