@@ -85,6 +85,9 @@ def test_the_3d_preset_keeps_the_pair_escalation_without_a_homography():
     assert cfg.fine.original_detector == "colmap-sift-affine"
     assert cfg.escalation == MatcherConfig().escalation and cfg.escalation.mser.enabled
     assert cfg.adaptive == MatcherConfig().adaptive
+    # the README's benchmark spells the preset out as overrides of the pair preset: the same config
+    assert cfg == MatcherConfig.from_overrides(final_homography=False, fine_include_original=True, guided_epipolar=True,
+                                               **{"fine.original_detector": "colmap-sift-affine"})
 
 
 def test_from_overrides_reaches_nested_sections():
