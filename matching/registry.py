@@ -6,6 +6,7 @@ from typing import Protocol
 
 from numpy.typing import NDArray
 
+from .io import resize_max
 from .store import FeatureStore
 from .types import PairResult
 
@@ -37,9 +38,20 @@ def get_matcher(method: str, **overrides) -> PairMatcher:
     raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
 
 
-def match_images(img0: NDArray, img1: NDArray, method: str = "extra-affine", **overrides) -> PairResult:
-    """Match two 8-bit gray images with a throw-away store (convenience for scripts)."""
+def match_images(img0: NDArray, img1: NDArray, method: str = "extra-affine", max_size: int = 0,
+                 **overrides) -> PairResult:
+    """Match two 8-bit gray images with a throw-away store (convenience for scripts).
+
+    `max_size` > 0 matches them downscaled so their longer side is at most that many px (SIFT's
+    time and memory grow with the pixels: a 24 Mpx photo takes gigabytes) and returns the
+    result in the originals' pixels (`PairResult.in_original_frame`); 0 = full resolution."""
+    work0, scale0 = resize_max(img0, max_size)
+    work1, scale1 = resize_max(img1, max_size)
     store = FeatureStore()
-    store.add_image("0", img0)
-    store.add_image("1", img1)
-    return get_matcher(method, **overrides).match(store, "0", "1")
+    store.add_image("0", work0)
+    store.add_image("1", work1)
+    result = get_matcher(method, **overrides).match(store, "0", "1")
+    if scale0 == scale1 == 1.0:
+        return result
+    sizes = ((img0.shape[1], img0.shape[0]), (img1.shape[1], img1.shape[0]))
+    return result.in_original_frame(scale0, scale1, sizes)

@@ -7,6 +7,7 @@ COLMAP's convention (centre at (0.5, 0.5)) is applied only when writing a COLMAP
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -119,6 +120,26 @@ class PairResult:
             path=self.path, path_reason=self.path_reason, planned_path=self.planned_path, verified=self.verified,
             timings=dict(self.timings), image_sizes=sizes,
         )
+
+    def in_original_frame(self, scale0: float, scale1: float,
+                          sizes: tuple[tuple[int, int], tuple[int, int]]) -> PairResult:
+        """This result, matched on downscaled images (`matching.io.resize_max`: working = scale x
+        original), in the originals' pixels: keypoints x_orig = (x_work + 0.5) / scale - 0.5
+        (pixel centres kept), `H_1_from_0` conjugated accordingly, `image_sizes` = `sizes`
+        ((w, h) of the originals). Views, scores and timings are unchanged (they describe the
+        matching itself)."""
+        def to_orig(k: Float2, s: float) -> Float2:
+            return ((k.astype(np.float64) + 0.5) / s - 0.5).astype(np.float32)
+
+        def work_from_orig(s: float) -> NDArray[np.float64]:
+            return np.array([[s, 0.0, 0.5 * s - 0.5], [0.0, s, 0.5 * s - 0.5], [0.0, 0.0, 1.0]])
+
+        H = self.H_1_from_0
+        if H is not None:
+            H = np.linalg.inv(work_from_orig(scale1)) @ H @ work_from_orig(scale0)
+            H = H / H[2, 2]
+        return dataclasses.replace(self, kpts0=to_orig(self.kpts0, scale0), kpts1=to_orig(self.kpts1, scale1),
+                                   H_1_from_0=H, image_sizes=sizes, timings=dict(self.timings))
 
     def without_matches(self, reason: str) -> PairResult:
         """This result with no matches and `reason`, its diagnostics (reference, views, coarse

@@ -105,6 +105,28 @@ def test_precision_direction_follows_image_order():
     assert b.points == 50 and abs(b.correct - a.correct) <= 1  # thresholds differ by the local scale
 
 
+def test_a_result_matched_downscaled_maps_back_to_the_originals_pixels():
+    """`PairResult.in_original_frame`: keypoints matched at scales 0.5 and 0.25 (pixel centres
+    kept: x_work = s (x + 0.5) - 0.5) and the homography between them come back to the
+    originals' frame, where the ground truth scores them all correct."""
+    p0 = _grid_points(50)
+    p1 = project(H_GRAF, p0)
+
+    def work_from_orig(s):
+        return np.array([[s, 0, 0.5 * s - 0.5], [0, s, 0.5 * s - 0.5], [0, 0, 1.0]])
+
+    w0 = (s0 := 0.5) * (p0 + 0.5) - 0.5
+    w1 = (s1 := 0.25) * (p1 + 0.5) - 0.5
+    H_work = work_from_orig(s1) @ H_GRAF @ np.linalg.inv(work_from_orig(s0))
+    r = _result(w0, w1)
+    r.H_1_from_0 = H_work
+    back = r.in_original_frame(s0, s1, ((800, 640), (800, 640)))
+    assert np.abs(back.kpts0 - p0).max() < 1e-3 and np.abs(back.kpts1 - p1).max() < 1e-2
+    assert np.allclose(back.H_1_from_0, H_GRAF / H_GRAF[2, 2], atol=1e-6)
+    assert back.image_sizes == ((800, 640), (800, 640)) and r.kpts0 is not back.kpts0
+    assert precision(back, H_GRAF).correct == 50 and precision(r, H_GRAF).correct < 5
+
+
 def test_empty_result_scores_zero():
     r = PairResult.empty("x", "nothing")
     rep = precision(r, H_GRAF)

@@ -11,13 +11,14 @@ from rich.console import Console
 from rich.table import Table
 
 from matching.config import VARIANTS
-from matching.io import load_color, load_gray, read_homography
+from matching.io import load_color, load_gray, read_homography, resize_max
 from matching.metrics import DEFAULT_TH, gt_reference, precision
 from matching.registry import METHODS, get_matcher
 from matching.store import FeatureStore
 from matching.types import PairResult
 from recon.cli._options import image_file, json_file
 from recon.cli.options import choices_metavar, seed_option, workers_option
+from recon.config import DEFAULT_MAX_SIZE
 
 console = Console(stderr=False, highlight=False)
 
@@ -64,6 +65,10 @@ def _print(summary: dict, result: PairResult) -> None:
         t.add_row("path", f"{result.path} ({result.path_reason})")
     if result.escalation:
         t.add_row("escalation", result.escalation)
+    scales = summary.get("working_scale", [1.0, 1.0])
+    if scales != [1.0, 1.0]:
+        t.add_row("working size", f"{scales[0]:.3g}x / {scales[1]:.3g}x the originals (--max-size; points in "
+                                  "the originals' pixels)")
     t.add_row("matches / inliers", f"{summary['matches']} / {summary['inliers']}")
     if "precision" in summary:
         ok = {True: "agrees with GT", False: "DISAGREES with GT", None: "GT scales within 10 %"}[summary["ref_correct"]]
@@ -87,6 +92,9 @@ def match_command(
     json_out: Optional[Path] = typer.Option(None, "--json", callback=json_file,
                                             help="Write the result summary and matched points as JSON."),
     th: float = typer.Option(DEFAULT_TH, "--th", help="Precision threshold in pixels (paper: sqrt(3))."),
+    max_size: int = typer.Option(DEFAULT_MAX_SIZE, "--max-size",
+                                 help="Match at this working resolution (longer side, px; 0 = full): results, "
+                                      "--gt and drawings stay in the originals' pixels."),
     variant: str = typer.Option("default", "--variant", metavar=choices_metavar(VARIANTS),
                                 help="extra-affine only: the default (planar pairs), the paper's plain reading, "
                                      "`recon run`'s preset, or 3d (two photos of a 3D scene: no final homography, "
@@ -108,6 +116,8 @@ def match_command(
         raise UserError(f"--th {th}: must be a positive number of pixels")
     if workers < 0:
         raise UserError(f"--workers {workers}: must be >= 0 (0 = all cores)")
+    if max_size != 0 and max_size < 64:
+        raise UserError(f"--max-size {max_size}: must be 0 (full resolution) or at least 64 px")
     from recon.viz.rerun_log import find_viewer, log_single_pair, parse_sink
 
     try:
@@ -118,10 +128,11 @@ def match_command(
         raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; use --rerun save:PATH")
     H_gt = read_homography(gt) if gt is not None else None
     gray = [load_gray(img_a), load_gray(img_b)]
+    (work0, scale0), (work1, scale1) = resize_max(gray[0], max_size), resize_max(gray[1], max_size)
     store = FeatureStore()
     names = (str(img_a), str(img_b))
-    store.add_image(names[0], gray[0])
-    store.add_image(names[1], gray[1])
+    store.add_image(names[0], work0)
+    store.add_image(names[1], work1)
     overrides: dict = {"seed": seed}
     if method == "extra-affine":
         overrides["workers"] = workers
@@ -132,7 +143,11 @@ def match_command(
 
     with quiet_colmap():  # the multiview preset's covariant SIFT would log each extraction
         result = matcher.match(store, names[0], names[1])
+    if (scale0, scale1) != (1.0, 1.0):
+        result = result.in_original_frame(scale0, scale1, ((gray[0].shape[1], gray[0].shape[0]),
+                                                           (gray[1].shape[1], gray[1].shape[0])))
     summary = summarize(result, names, H_gt, th)
+    summary["working_scale"] = [scale0, scale1]
     _print(summary, result)
     if result.num_matches == 0:
         console.print(f"no match: {result.reason or 'the images share no features'}")
