@@ -97,6 +97,11 @@ def load_color(path: str | Path) -> NDArray[np.uint8]:
     return to_bgr_u8(img)
 
 
+def image_size(img: NDArray) -> tuple[int, int]:
+    """(width, height) in px, the order of `PairResult.image_sizes` and COLMAP's cameras."""
+    return int(img.shape[1]), int(img.shape[0])
+
+
 def resize_max(img: NDArray, max_size: int | None) -> tuple[NDArray, float]:
     """Downscale so the longer side is at most `max_size` px (INTER_AREA).
 

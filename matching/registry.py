@@ -6,7 +6,7 @@ from typing import Protocol
 
 from numpy.typing import NDArray
 
-from .io import resize_max
+from .io import image_size, resize_max
 from .store import FeatureStore
 from .types import PairResult
 
@@ -53,5 +53,4 @@ def match_images(img0: NDArray, img1: NDArray, method: str = "extra-affine", max
     result = get_matcher(method, **overrides).match(store, "0", "1")
     if scale0 == scale1 == 1.0:
         return result
-    sizes = ((img0.shape[1], img0.shape[0]), (img1.shape[1], img1.shape[0]))
-    return result.in_original_frame(scale0, scale1, sizes)
+    return result.in_original_frame((image_size(work0), image_size(work1)), (image_size(img0), image_size(img1)))

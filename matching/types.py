@@ -121,24 +121,29 @@ class PairResult:
             timings=dict(self.timings), image_sizes=sizes,
         )
 
-    def in_original_frame(self, scale0: float, scale1: float,
+    def in_original_frame(self, work_sizes: tuple[tuple[int, int], tuple[int, int]],
                           sizes: tuple[tuple[int, int], tuple[int, int]]) -> PairResult:
-        """This result, matched on downscaled images (`matching.io.resize_max`: working = scale x
-        original), in the originals' pixels: keypoints x_orig = (x_work + 0.5) / scale - 0.5
-        (pixel centres kept), `H_1_from_0` conjugated accordingly, `image_sizes` = `sizes`
-        ((w, h) of the originals). Views, scores and timings are unchanged (they describe the
-        matching itself)."""
-        def to_orig(k: Float2, s: float) -> Float2:
-            return ((k.astype(np.float64) + 0.5) / s - 0.5).astype(np.float32)
+        """This result, matched on images resized from `sizes` to `work_sizes` ((w, h) of image 0
+        and image 1; `matching.io.resize_max`), in the originals' pixels: `cv2.resize` maps pixel
+        centres, so x_orig = (x_work + 0.5) / sx - 0.5 with the exact per-axis scale sx = w_work /
+        w (a rounded side differs from the nominal scale by up to half a pixel); `H_1_from_0`
+        conjugated accordingly, `image_sizes` = `sizes`. Views, scores and timings are unchanged
+        (they describe the matching itself)."""
+        def scales(i: int) -> tuple[float, float]:
+            return work_sizes[i][0] / sizes[i][0], work_sizes[i][1] / sizes[i][1]
 
-        def work_from_orig(s: float) -> NDArray[np.float64]:
-            return np.array([[s, 0.0, 0.5 * s - 0.5], [0.0, s, 0.5 * s - 0.5], [0.0, 0.0, 1.0]])
+        def to_orig(k: Float2, sx: float, sy: float) -> Float2:
+            return ((k.astype(np.float64) + 0.5) / np.array([sx, sy]) - 0.5).astype(np.float32).reshape(-1, 2)
 
+        def work_from_orig(sx: float, sy: float) -> NDArray[np.float64]:
+            return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+        (sx0, sy0), (sx1, sy1) = scales(0), scales(1)
         H = self.H_1_from_0
         if H is not None:
-            H = np.linalg.inv(work_from_orig(scale1)) @ H @ work_from_orig(scale0)
+            H = np.linalg.inv(work_from_orig(sx1, sy1)) @ H @ work_from_orig(sx0, sy0)
             H = H / H[2, 2]
-        return dataclasses.replace(self, kpts0=to_orig(self.kpts0, scale0), kpts1=to_orig(self.kpts1, scale1),
+        return dataclasses.replace(self, kpts0=to_orig(self.kpts0, sx0, sy0), kpts1=to_orig(self.kpts1, sx1, sy1),
                                    H_1_from_0=H, image_sizes=sizes, timings=dict(self.timings))
 
     def without_matches(self, reason: str) -> PairResult:

@@ -106,21 +106,23 @@ def test_precision_direction_follows_image_order():
 
 
 def test_a_result_matched_downscaled_maps_back_to_the_originals_pixels():
-    """`PairResult.in_original_frame`: keypoints matched at scales 0.5 and 0.25 (pixel centres
-    kept: x_work = s (x + 0.5) - 0.5) and the homography between them come back to the
-    originals' frame, where the ground truth scores them all correct."""
+    """`PairResult.in_original_frame`: keypoints matched on 800 x 640 images resized to 400 x 321
+    and 200 x 161 (per-axis scales of rounded sides; pixel centres kept: x_work = sx (x + 0.5) -
+    0.5) and the homography between them come back to the originals' frame, where the ground
+    truth scores them all correct."""
     p0 = _grid_points(50)
     p1 = project(H_GRAF, p0)
+    (sx0, sy0), (sx1, sy1) = (400 / 800, 321 / 640), (200 / 800, 161 / 640)
 
-    def work_from_orig(s):
-        return np.array([[s, 0, 0.5 * s - 0.5], [0, s, 0.5 * s - 0.5], [0, 0, 1.0]])
+    def work_from_orig(sx, sy):
+        return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1.0]])
 
-    w0 = (s0 := 0.5) * (p0 + 0.5) - 0.5
-    w1 = (s1 := 0.25) * (p1 + 0.5) - 0.5
-    H_work = work_from_orig(s1) @ H_GRAF @ np.linalg.inv(work_from_orig(s0))
+    w0 = np.array([sx0, sy0]) * (p0 + 0.5) - 0.5
+    w1 = np.array([sx1, sy1]) * (p1 + 0.5) - 0.5
+    H_work = work_from_orig(sx1, sy1) @ H_GRAF @ np.linalg.inv(work_from_orig(sx0, sy0))
     r = _result(w0, w1)
     r.H_1_from_0 = H_work
-    back = r.in_original_frame(s0, s1, ((800, 640), (800, 640)))
+    back = r.in_original_frame(((400, 321), (200, 161)), ((800, 640), (800, 640)))
     assert np.abs(back.kpts0 - p0).max() < 1e-3 and np.abs(back.kpts1 - p1).max() < 1e-2
     assert np.allclose(back.H_1_from_0, H_GRAF / H_GRAF[2, 2], atol=1e-6)
     assert back.image_sizes == ((800, 640), (800, 640)) and r.kpts0 is not back.kpts0

@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from matching.config import VARIANTS
-from matching.io import load_color, load_gray, read_homography, resize_max
+from matching.io import image_size, load_color, load_gray, read_homography, resize_max
 from matching.metrics import DEFAULT_TH, gt_reference, precision
 from matching.registry import METHODS, get_matcher
 from matching.store import FeatureStore
@@ -144,8 +144,8 @@ def match_command(
     with quiet_colmap():  # the multiview preset's covariant SIFT would log each extraction
         result = matcher.match(store, names[0], names[1])
     if (scale0, scale1) != (1.0, 1.0):
-        result = result.in_original_frame(scale0, scale1, ((gray[0].shape[1], gray[0].shape[0]),
-                                                           (gray[1].shape[1], gray[1].shape[0])))
+        result = result.in_original_frame((image_size(work0), image_size(work1)),
+                                          (image_size(gray[0]), image_size(gray[1])))
     summary = summarize(result, names, H_gt, th)
     summary["working_scale"] = [scale0, scale1]
     _print(summary, result)
