@@ -76,15 +76,16 @@ def test_match_reports_precision_and_writes_outputs(graf_small, tmp_path, capsys
 
 def test_max_size_matches_downscaled_and_reports_in_the_originals_pixels(graf_dir, tmp_path, capsys):
     """graf 1-3 (800 x 640) at --max-size 400: matched at half size, but the points, the
-    homography and the --gt precision are in the originals' pixels (precision measured 0.89 at
-    half size, as for the half-size copies above)."""
+    homography and the --gt precision are in the originals' pixels (measured 98.8 % of 418
+    points within sqrt(3) original px; a mapping off by the scale would fail it, and
+    tests/test_metrics.py checks the pixel-centre convention exactly)."""
     js = tmp_path / "out.json"
     rc = main(["match", str(graf_dir / "img1.png"), str(graf_dir / "img3.png"), "--gt", str(graf_dir / "H1to3p"),
                "--max-size", "400", "--json", str(js)])
     assert rc == 0 and "working size" in capsys.readouterr().out
     data = json.loads(js.read_text())
     assert data["working_scale"] == [0.5, 0.5]
-    assert data["precision"] >= 0.85 and data["points"] >= 100
+    assert data["precision"] >= 0.9 and data["points"] >= 300
     pts0 = np.array(data["points0"])
     assert pts0[:, 0].max() > 500  # the originals' frame, not the 400 px working one
     H_gt = np.loadtxt(graf_dir / "H1to3p")
