@@ -257,7 +257,7 @@ class MatcherConfig:
         path at 0.88° in 9.7 s; lost: castle_P30 0028-0029 (51°, 2.8° -> 8.0°). On 40 rendered
         3D pairs (the project's corner and facade presets) 30 -> 36 solved, AUC@5 0.727 -> 0.861:
         the pair preset's matches lie on the one surface its views rectify, from which the
-        essential matrix is ambiguous (poses 52-127° off with hundreds of correct matches)."""
+        essential matrix is ambiguous (poses 47-130° off with hundreds of correct matches)."""
         return MatcherConfig(final_homography=False, fine_include_original=True, guided_epipolar=True,
                              fine=FineConfig(original_detector="colmap-sift-affine"))
 
