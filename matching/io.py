@@ -102,6 +102,29 @@ def image_size(img: NDArray) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
+def to_original_px(kpts: NDArray, scale_xy: tuple[float, float]) -> NDArray[np.float32]:
+    """Working-resolution keypoints (OpenCV convention) -> the original's pixels, (N, 2) float32.
+
+    `cv2.resize` maps pixel centres, so x_orig = (x_work + 0.5) / sx - 0.5 per axis, with
+    (sx, sy) = working size / original size, the exact per-axis scale of the rounded working
+    size (`resize_max`'s nominal scale is up to half a pixel off on the shorter side).
+    """
+    sx, sy = scale_xy
+    k = np.asarray(kpts, np.float64).reshape(-1, 2)
+    if sx == 1.0 and sy == 1.0:
+        return k.astype(np.float32)
+    out = np.empty_like(k)
+    out[:, 0] = (k[:, 0] + 0.5) / sx - 0.5
+    out[:, 1] = (k[:, 1] + 0.5) / sy - 0.5
+    return out.astype(np.float32)
+
+
+def work_from_original(scale_xy: tuple[float, float]) -> NDArray[np.float64]:
+    """A with x_work = A @ x_orig (homogeneous, the pixel-centre convention of `to_original_px`)."""
+    sx, sy = scale_xy
+    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]], np.float64)
+
+
 def resize_max(img: NDArray, max_size: int | None) -> tuple[NDArray, float]:
     """Downscale so the longer side is at most `max_size` px (INTER_AREA).
 

@@ -124,27 +124,19 @@ class PairResult:
     def in_original_frame(self, work_sizes: tuple[tuple[int, int], tuple[int, int]],
                           sizes: tuple[tuple[int, int], tuple[int, int]]) -> PairResult:
         """This result, matched on images resized from `sizes` to `work_sizes` ((w, h) of image 0
-        and image 1; `matching.io.resize_max`), in the originals' pixels: `cv2.resize` maps pixel
-        centres, so x_orig = (x_work + 0.5) / sx - 0.5 with the exact per-axis scale sx = w_work /
-        w (a rounded side differs from the nominal scale by up to half a pixel); `H_1_from_0`
-        conjugated accordingly, `image_sizes` = `sizes`. Views, scores and timings are unchanged
+        and image 1; `matching.io.resize_max`), in the originals' pixels: keypoints through
+        `io.to_original_px` with the exact per-axis scales, `H_1_from_0` conjugated by
+        `io.work_from_original`, `image_sizes` = `sizes`. Views, scores and timings are unchanged
         (they describe the matching itself)."""
-        def scales(i: int) -> tuple[float, float]:
-            return work_sizes[i][0] / sizes[i][0], work_sizes[i][1] / sizes[i][1]
+        from .io import to_original_px, work_from_original
 
-        def to_orig(k: Float2, sx: float, sy: float) -> Float2:
-            return ((k.astype(np.float64) + 0.5) / np.array([sx, sy]) - 0.5).astype(np.float32).reshape(-1, 2)
-
-        def work_from_orig(sx: float, sy: float) -> NDArray[np.float64]:
-            return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-
-        (sx0, sy0), (sx1, sy1) = scales(0), scales(1)
-        H = self.H_1_from_0
-        if H is not None:
-            H = np.linalg.inv(work_from_orig(sx1, sy1)) @ H @ work_from_orig(sx0, sy0)
-            H = H / H[2, 2]
-        return dataclasses.replace(self, kpts0=to_orig(self.kpts0, sx0, sy0), kpts1=to_orig(self.kpts1, sx1, sy1),
-                                   H_1_from_0=H, image_sizes=sizes, timings=dict(self.timings))
+        s0, s1 = ((w / W, h / H) for (w, h), (W, H) in zip(work_sizes, sizes))
+        H_1_from_0 = self.H_1_from_0
+        if H_1_from_0 is not None:
+            H_1_from_0 = np.linalg.inv(work_from_original(s1)) @ np.asarray(H_1_from_0, np.float64) @ work_from_original(s0)
+            H_1_from_0 = H_1_from_0 / H_1_from_0[2, 2]
+        return dataclasses.replace(self, kpts0=to_original_px(self.kpts0, s0), kpts1=to_original_px(self.kpts1, s1),
+                                   H_1_from_0=H_1_from_0, image_sizes=sizes, timings=dict(self.timings))
 
     def without_matches(self, reason: str) -> PairResult:
         """This result with no matches and `reason`, its diagnostics (reference, views, coarse

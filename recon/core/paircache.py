@@ -10,6 +10,7 @@ stops with "no space left on device writing PATH" instead of reporting pairs as 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -17,43 +18,28 @@ import threading
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from matching.types import CoarseScore, PairResult, ViewParams
 from recon.core.jsonio import replaced_atomically
-from recon.core.scene import SceneImage, to_full_res
+from recon.core.scene import SceneImage
 
 PAIR_CACHE_VERSION = "2"  # 2: OpenCV SIFT keypoints at pixel centres (matching.features.DetectorConfig.centre_keypoints)
 
 
-def _affine_full_from_work(scale_xy: tuple[float, float]) -> NDArray[np.float64]:
-    """A with x_work = A @ x_full (pixel-centre convention, see `scene.to_full_res`)."""
-    sx, sy = scale_xy
-    return np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]], np.float64)
-
-
 def result_to_full_res(r: PairResult, im0: SceneImage, im1: SceneImage) -> PairResult:
-    """The same result in full-resolution pixels, keeping only matched keypoints (compact)."""
+    """The same result in full-resolution pixels (`PairResult.in_original_frame`), keeping only
+    matched keypoints (compact)."""
     m = np.asarray(r.matches, np.int64).reshape(-1, 2)
     used0 = np.unique(m[:, 0]) if len(m) else np.zeros(0, np.int64)
     used1 = np.unique(m[:, 1]) if len(m) else np.zeros(0, np.int64)
-    k0 = to_full_res(np.asarray(r.kpts0).reshape(-1, 2)[used0], im0.scale_xy)
-    k1 = to_full_res(np.asarray(r.kpts1).reshape(-1, 2)[used1], im1.scale_xy)
     mm = (np.stack([np.searchsorted(used0, m[:, 0]), np.searchsorted(used1, m[:, 1])], 1).astype(np.int32)
           if len(m) else np.zeros((0, 2), np.int32))
-    H = None
-    if r.H_1_from_0 is not None:
-        A0, A1 = _affine_full_from_work(im0.scale_xy), _affine_full_from_work(im1.scale_xy)
-        H = np.linalg.inv(A1) @ np.asarray(r.H_1_from_0, np.float64) @ A0
-        H = H / H[2, 2]
-    return PairResult(
-        method=r.method, kpts0=k0, kpts1=k1, matches=mm,
-        distances=np.asarray(r.distances, np.float32).reshape(-1), reference=r.reference,
-        reference_reason=r.reference_reason, f0=r.f0, f1=r.f1, best_views=list(r.best_views),
-        coarse_scores=r.coarse_scores, H_1_from_0=H, inlier_mask=r.inlier_mask, escalation=r.escalation,
-        reason=r.reason, path=r.path, path_reason=r.path_reason, planned_path=r.planned_path, verified=r.verified,
-        timings=dict(r.timings), image_sizes=((im0.width, im0.height), (im1.width, im1.height)),
-    )
+    compact = dataclasses.replace(r, kpts0=np.asarray(r.kpts0).reshape(-1, 2)[used0],
+                                  kpts1=np.asarray(r.kpts1).reshape(-1, 2)[used1], matches=mm,
+                                  distances=np.asarray(r.distances, np.float32).reshape(-1),
+                                  best_views=list(r.best_views))
+    return compact.in_original_frame(((im0.work_width, im0.work_height), (im1.work_width, im1.work_height)),
+                                     ((im0.width, im0.height), (im1.width, im1.height)))
 
 
 def save_pair_result(path: Path, r: PairResult) -> None:

@@ -49,7 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from matching.errors import InputError
-from matching.io import MIN_IMAGE_SIDE, resize_max, to_gray_u8
+from matching.io import MIN_IMAGE_SIDE, resize_max, to_gray_u8, to_original_px
 
 IMAGE_EXTS: frozenset[str] = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff"})
 
@@ -286,16 +286,7 @@ def to_working(kpts: NDArray, scale_xy: tuple[float, float]) -> NDArray[np.float
 
 
 def to_full_res(kpts: NDArray, scale_xy: tuple[float, float]) -> NDArray[np.float32]:
-    """Working-resolution keypoints (OpenCV convention) -> full-resolution keypoints.
-
-    `cv2.resize` maps pixel centres, so x_full = (x_work + 0.5) / sx - 0.5 per axis (the formula
-    of `matching.io.resize_max`, with the exact per-axis scale of the rounded working size).
-    """
-    sx, sy = scale_xy
-    k = np.asarray(kpts, np.float64).reshape(-1, 2)
-    if sx == 1.0 and sy == 1.0:
-        return k.astype(np.float32)
-    out = np.empty_like(k)
-    out[:, 0] = (k[:, 0] + 0.5) / sx - 0.5
-    out[:, 1] = (k[:, 1] + 0.5) / sy - 0.5
-    return out.astype(np.float32)
+    """Working-resolution keypoints (OpenCV convention) -> full-resolution keypoints:
+    x_full = (x_work + 0.5) / sx - 0.5 per axis (`matching.io.to_original_px`, with the exact
+    per-axis scale of the rounded working size)."""
+    return to_original_px(kpts, scale_xy)
