@@ -11,10 +11,9 @@ from rich.console import Console
 from rich.table import Table
 
 from matching.config import VARIANTS
-from matching.io import image_size, load_color, load_gray, read_homography, resize_max
+from matching.io import load_color, load_gray, read_homography
 from matching.metrics import DEFAULT_TH, gt_reference, precision
-from matching.registry import METHODS, get_matcher
-from matching.store import FeatureStore
+from matching.registry import METHODS, get_matcher, match_at_size
 from matching.types import PairResult
 from recon.cli._options import image_file, json_file
 from recon.cli.options import choices_metavar, seed_option, workers_option
@@ -128,11 +127,7 @@ def match_command(
         raise UserError("--rerun spawn: the Rerun viewer (`rerun`) is not installed; use --rerun save:PATH")
     H_gt = read_homography(gt) if gt is not None else None
     gray = [load_gray(img_a), load_gray(img_b)]
-    (work0, scale0), (work1, scale1) = resize_max(gray[0], max_size), resize_max(gray[1], max_size)
-    store = FeatureStore()
     names = (str(img_a), str(img_b))
-    store.add_image(names[0], work0)
-    store.add_image(names[1], work1)
     overrides: dict = {"seed": seed}
     if method == "extra-affine":
         overrides["workers"] = workers
@@ -142,10 +137,7 @@ def match_command(
     from recon.log import quiet_colmap
 
     with quiet_colmap():  # the multiview preset's covariant SIFT would log each extraction
-        result = matcher.match(store, names[0], names[1])
-    if (scale0, scale1) != (1.0, 1.0):
-        result = result.in_original_frame((image_size(work0), image_size(work1)),
-                                          (image_size(gray[0]), image_size(gray[1])))
+        result, (scale0, scale1) = match_at_size(matcher, gray[0], gray[1], max_size, names)
     summary = summarize(result, names, H_gt, th)
     summary["working_scale"] = [scale0, scale1]
     _print(summary, result)
