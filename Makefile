@@ -26,9 +26,13 @@ demo: $(STAMP)
 	$(BIN)/recon render-scene $(DEMO)/scene --preset corner --seed 0 --overwrite
 	$(BIN)/recon run $(DEMO)/scene --out $(DEMO)/recon --overwrite
 
+# Test files run in parallel on up to 4 cores (pytest-xdist); a file's tests stay on one worker,
+# so its module-scoped fixtures (a reconstruction, a rendered scene) are computed once.
+XDIST := -n auto --maxprocesses 4 --dist loadfile
+
 ## All tests (real data from ../shared/data where present, skipped with a reason otherwise).
 test: lint
-	$(BIN)/python -m pytest -p no:dash -q
+	$(BIN)/python -m pytest -p no:dash -q $(XDIST)
 
 ## ruff (style, imports, bugbear, pyupgrade) on the packages, benchmarks and tests, and mypy on the library packages, as CI runs them.
 lint: $(STAMP)
@@ -37,7 +41,7 @@ lint: $(STAMP)
 
 ## Everything but the end-to-end runs (tests marked slow, see tests/conftest.py): under a minute.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -p no:dash -q -m "not slow" --durations=15
+	$(BIN)/python -m pytest -p no:dash -q $(XDIST) -m "not slow" --durations=15
 
 bench-pairs: $(STAMP)
 	$(BIN)/recon bench pairs ../shared/data --json benchmarks/results/pairs.json
