@@ -68,6 +68,7 @@ class MatchContext:
     targeted_coarse_inliers: int = 0  # the most ORB inliers of the adaptive targeted search, if it ran
     fallen_through: Attempt | None = None  # the best adaptive attempt that verified too little
     attempts: list[Attempt] = field(default_factory=list)  # every attempt of the escalation so far, in order
+    notes: list[str] = field(default_factory=list)  # what each finishing step did (`PairResult.finishing`)
 
     def size(self, i: int) -> tuple[int, int]:
         """(width, height) of image `i` (0 or 1)."""

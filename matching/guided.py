@@ -88,6 +88,7 @@ def guided_homography_round(ctx: MatchContext, att: Attempt, res: PairResult) ->
         lambda fv, ft: guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, H_t_from_ref,
                                     cfg.guided_px, cfg.guided_ratio), tf)
     if len(m_all) == 0:
+        ctx.notes.append("guided round under H: no match in the band")
         return res
     m_all, d_all = unique_train(m_all, d_all)
     guided = Attempt("guided", ref, compact(kr, tf.kpts, m_all, d_all), att.views, att.coarse, 0)
@@ -96,8 +97,11 @@ def guided_homography_round(ctx: MatchContext, att: Attempt, res: PairResult) ->
     p0, p1 = out.matched_points(inliers_only=False)
     H, inl = ransac_homography(p0, p1, cfg.final_ransac_px, seed=cfg.seed)
     if H is None or inl.sum() < res.num_inliers:
+        ctx.notes.append(f"guided round under H kept out: its refit has {0 if H is None else int(inl.sum())} inliers, "
+                         f"the first round {res.num_inliers}")
         return res
     out.H_1_from_0, out.inlier_mask = H, inl
+    ctx.notes.append(f"guided round under H: {res.num_inliers} -> {int(inl.sum())} inliers")
     return out
 
 
@@ -105,16 +109,19 @@ def trusted_fundamental(ctx: MatchContext, fm: FineMatches) -> NDArray[np.float6
     """F (reference -> target) of the first round's matches, or None when it is not trustworthy:
     fewer than `guided_epipolar_min_inliers` inliers, or under `guided_epipolar_min_ratio` of the
     matches. Around a wrong F the band collects chance matches that are consistent with it, so
-    COLMAP would verify them (docs/decisions.md)."""
+    COLMAP would verify them (docs/decisions.md). Either way the count goes to `ctx.notes`."""
     cfg = ctx.cfg
     p_ref, p_t = fm.kpts_ref[fm.matches[:, 0]], fm.kpts_target[fm.matches[:, 1]]
     cv2.setRNGSeed(cfg.seed)
     F, mask = cv2.findFundamentalMat(p_ref.astype(np.float32), p_t.astype(np.float32), cv2.FM_RANSAC,
                                      cfg.guided_epipolar_px, 0.999, 10000)
     if F is None or F.shape != (3, 3) or mask is None:
+        ctx.notes.append(f"epipolar round skipped: no F fits the {len(p_ref)} first-round matches")
         return None
     inl = mask.ravel().astype(bool)
     if inl.sum() < cfg.guided_epipolar_min_inliers or inl.sum() < cfg.guided_epipolar_min_ratio * len(inl):
+        ctx.notes.append(f"epipolar round skipped: F holds {int(inl.sum())} of the {len(inl)} first-round matches "
+                         f"(needs >= {cfg.guided_epipolar_min_inliers} and >= {cfg.guided_epipolar_min_ratio:.0%})")
         return None
     if cfg.guided_epipolar_polish:
         F, _ = polish_fundamental(p_ref, p_t, F, cfg.guided_epipolar_px)
@@ -146,7 +153,10 @@ def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> P
     keep = epipolar_pair_distance(F, kr[m_all[:, 0]], tf.kpts[m_all[:, 1]]) <= cfg.guided_epipolar_px
     fm2 = compact(kr, tf.kpts, m_all[keep], d_all[keep])
     if len(fm2.matches) <= res.num_matches:
+        ctx.notes.append(f"epipolar round kept out: {len(fm2.matches)} F-consistent matches, the first round "
+                         f"{res.num_matches}")
         return res
+    ctx.notes.append(f"epipolar round: {res.num_matches} -> {len(fm2.matches)} matches")
     out = ctx.to_result(Attempt("guided", ref, fm2, att.views, att.coarse, 0), res.reference_reason, res.f0, res.f1)
     out.escalation = res.escalation
     return out

@@ -125,6 +125,7 @@ class ExtraAffineMatcher:
                 if step.applies(ctx, best, result):
                     result = step.run(ctx, best, result)
         result.path, result.path_reason, result.planned_path = path, path_reason, planned
+        result.finishing = "; ".join(ctx.notes)
         ctx.timings["total"] = time.perf_counter() - t_start
         result.timings = ctx.timings
         return self.enough_or_empty(result)

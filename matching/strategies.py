@@ -281,7 +281,10 @@ def refine_result(ctx: MatchContext, att: Attempt, res: PairResult) -> PairResul
     pts_m, pts_f = kpts[moving][m[:, moving]], kpts[fixed][m[:, fixed]]
     H_f_from_m = None if res.H_1_from_0 is None else np.asarray(
         res.H_1_from_0 if moving == 0 else np.linalg.inv(res.H_1_from_0), np.float64)
-    refined, _ = refine_matches(img[moving], img[fixed], pts_m, pts_f, H_f_from_m, ctx.cfg.refine, ctx.pool)
+    refined, moved = refine_matches(img[moving], img[fixed], pts_m, pts_f, H_f_from_m, ctx.cfg.refine, ctx.pool)
+    shift = np.linalg.norm(refined - pts_m, axis=1)[moved] if moved.any() else np.zeros(0)
+    ctx.notes.append(f"refinement moved {int(moved.sum())} of {len(moved)} points"
+                     + (f" (median {float(np.median(shift)):.2f} px)" if len(shift) else ""))
     # one keypoint per match on the moving side, so refined positions never collide across matches
     new_kpts = refined.astype(np.float32)
     new_idx = np.arange(len(m), dtype=np.int32)

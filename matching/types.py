@@ -82,6 +82,7 @@ class PairResult:
     planned_path: str = ""  # the path the originals' evidence points to (`adaptive.plan_pair`), adaptive or
     # not (with adaptive paths `path` differs where an attempt fell through); "" when nothing is simulated
     verified: int = -1  # matches its own check verified (H / F inliers) before the finishing steps; -1: not counted
+    finishing: str = ""  # what the finishing steps did ("; "-joined: a guided round's gain or why it was skipped, refinement)
     timings: dict[str, float] = field(default_factory=dict)
     image_sizes: tuple[tuple[int, int], tuple[int, int]] | None = None  # ((w0, h0), (w1, h1))
 
@@ -118,7 +119,7 @@ class PairResult:
             best_views=self.best_views, coarse_scores=self.coarse_scores, H_1_from_0=H,
             inlier_mask=self.inlier_mask, escalation=self.escalation, reason=self.reason,
             path=self.path, path_reason=self.path_reason, planned_path=self.planned_path, verified=self.verified,
-            timings=dict(self.timings), image_sizes=sizes,
+            finishing=self.finishing, timings=dict(self.timings), image_sizes=sizes,
         )
 
     def in_original_frame(self, work_sizes: tuple[tuple[int, int], tuple[int, int]],
@@ -145,7 +146,7 @@ class PairResult:
                                 f0=self.f0, f1=self.f1, best_views=self.best_views, coarse_scores=self.coarse_scores,
                                 escalation=self.escalation, timings=self.timings, image_sizes=self.image_sizes,
                                 path=self.path, path_reason=self.path_reason, planned_path=self.planned_path,
-                                verified=self.verified)
+                                verified=self.verified, finishing=self.finishing)
 
     @staticmethod
     def empty(method: str, reason: str, **kw) -> PairResult:

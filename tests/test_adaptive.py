@@ -229,6 +229,22 @@ def test_path_reaches_the_rerun_text_and_the_pair_cache(tmp_path):
     assert r.without_matches("x").planned_path == "originals"
 
 
+def test_finishing_notes_reach_the_rerun_text_the_cache_and_the_report(tmp_path):
+    """`PairResult.finishing` (what the guided round and refinement did) survives the pair
+    cache, a swap and an emptied result, and shows in the pair's Rerun text."""
+    from matching.types import PairResult
+    from recon.core.paircache import load_pair_result, save_pair_result
+    from recon.viz.rerun_log import pair_markdown
+
+    note = "epipolar round: 412 -> 655 matches; refinement moved 640 of 655 points (median 0.21 px)"
+    r = PairResult.empty("extra-affine", "", finishing=note)
+    assert f"| finishing | {note} |" in pair_markdown("a.jpg", "b.jpg", r, cached=False)
+    save_pair_result(tmp_path / "p.npz", r)
+    back = load_pair_result(tmp_path / "p.npz")
+    assert back is not None and back.finishing == note
+    assert r.swapped().finishing == r.without_matches("x").finishing == note
+
+
 def test_recon_run_keeps_the_full_grid_unless_asked():
     """Scenes default to the full grid (the cheap paths cost accuracy on wide-baseline facades,
     see matching.config.MatcherConfig.multiview); pair matching and `--preset adaptive` use them."""

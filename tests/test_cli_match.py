@@ -68,6 +68,7 @@ def test_match_reports_precision_and_writes_outputs(graf_small, tmp_path, capsys
     # half-size graf 1-3: the originals' homography estimates the tilt, so only the grid views
     # near it are scored (the adaptive `targeted` path; 45 with the full grid)
     assert data["path"] == "targeted" and "tilt" in data["path_reason"]
+    assert "refinement moved" in data["finishing"] and "finishing" in out  # what the finishing steps did
     assert len(data["coarse_scores"]) == MatcherConfig().paths.targeted_views
     assert data["reference_index"] == 0
     vis_img = cv2.imdecode(np.fromfile(str(vis), np.uint8), cv2.IMREAD_COLOR)

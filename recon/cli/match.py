@@ -34,7 +34,7 @@ def summarize(result: PairResult, names: tuple[str, str], gt=None, th: float = D
         "coarse_scores": [{"t": c.view.t, "phi": c.view.phi, "s": c.view.s, "matches": c.matches,
                            "inliers": c.inliers, "score": c.score} for c in result.coarse_scores],
         "escalation": result.escalation, "path": result.path, "path_reason": result.path_reason,
-        "reason": result.reason, "timings_s": result.timings,
+        "finishing": result.finishing, "reason": result.reason, "timings_s": result.timings,
         "H_1_from_0": None if result.H_1_from_0 is None else result.H_1_from_0.tolist(),
     }
     p0, p1 = result.matched_points(inliers_only=True)
@@ -64,6 +64,8 @@ def _print(summary: dict, result: PairResult) -> None:
         t.add_row("path", f"{result.path} ({result.path_reason})")
     if result.escalation:
         t.add_row("escalation", result.escalation)
+    if result.finishing:
+        t.add_row("finishing", result.finishing)
     scales = summary.get("working_scale", [1.0, 1.0])
     if scales != [1.0, 1.0]:
         t.add_row("working size", f"{scales[0]:.3g}x / {scales[1]:.3g}x the originals (--max-size; points in "
@@ -73,7 +75,7 @@ def _print(summary: dict, result: PairResult) -> None:
         ok = {True: "agrees with GT", False: "DISAGREES with GT", None: "GT scales within 10 %"}[summary["ref_correct"]]
         t.add_row("precision", f"{summary['precision'] * 100:.2f} %  ({summary['correct']} of {summary['points']} "
                                f"within {summary['th']:.3g} px); reference {ok}")
-    t.add_row("time", "  ".join(f"{k} {v:.2f}s" for k, v in result.timings.items() if k != "guided_rejected"))
+    t.add_row("time", "  ".join(f"{k} {v:.2f}s" for k, v in result.timings.items()))
     if result.reason:
         t.add_row("note", result.reason)
     console.print(t)

@@ -51,7 +51,7 @@ def save_pair_result(path: Path, r: PairResult) -> None:
     meta = dict(method=r.method, reference=r.reference, reference_reason=r.reference_reason,
                 f0=r.f0, f1=r.f1, escalation=r.escalation, reason=r.reason, timings=r.timings,
                 path=r.path, path_reason=r.path_reason, planned_path=r.planned_path, verified=r.verified,
-                image_sizes=r.image_sizes, version=PAIR_CACHE_VERSION)
+                finishing=r.finishing, image_sizes=r.image_sizes, version=PAIR_CACHE_VERSION)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp.npz")
     with replaced_atomically(path, tmp):
         np.savez(tmp, kpts0=np.asarray(r.kpts0, np.float32), kpts1=np.asarray(r.kpts1, np.float32),
@@ -85,7 +85,7 @@ def load_pair_result(path: Path) -> PairResult | None:
                 escalation=meta.get("escalation", ""), reason=meta.get("reason", ""),
                 path=meta.get("path", ""), path_reason=meta.get("path_reason", ""),
                 planned_path=meta.get("planned_path", ""), verified=int(meta.get("verified", -1)),
-                timings=meta.get("timings", {}),
+                finishing=meta.get("finishing", ""), timings=meta.get("timings", {}),
                 image_sizes=tuple(tuple(s) for s in sizes) if sizes else None,  # type: ignore[arg-type]
             )
     except Exception:  # a damaged cache file is recomputed, never trusted

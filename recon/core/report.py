@@ -101,6 +101,7 @@ class PairRow:
     path: str = ""  # the matcher's adaptive path: "originals", "targeted" or "full" (matching.adaptive)
     path_reason: str = ""  # why that path
     planned_path: str = ""  # the path the originals' evidence points to (matching.adaptive.plan_pair), adaptive or not
+    finishing: str = ""  # what the matcher's finishing steps did (the epipolar round's gain or why it was skipped, refinement)
 
 
 @dataclass

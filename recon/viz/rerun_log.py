@@ -430,6 +430,8 @@ def pair_markdown(name0: str, name1: str, r: PairResult, cached: bool, verified:
         lines.append(f"| path | {r.path} ({r.path_reason or '-'}) |")
     if r.escalation:
         lines.append(f"| escalation | {r.escalation} |")
+    if r.finishing:
+        lines.append(f"| finishing | {r.finishing} |")
     lines.append(f"| raw matches | {r.num_matches} |")
     lines.append(f"| matcher inliers | {r.num_inliers} |")
     if verified is not None:
@@ -438,7 +440,7 @@ def pair_markdown(name0: str, name1: str, r: PairResult, cached: bool, verified:
     lines.append(f"| from cache | {'yes' if cached else 'no'} |")
     if r.reason:
         lines.append(f"| note | {r.reason} |")
-    stages = [(k, v) for k, v in r.timings.items() if isinstance(v, (int, float)) and k != "guided_rejected"]
+    stages = [(k, v) for k, v in r.timings.items() if isinstance(v, (int, float))]
     if stages:
         lines += ["", "### Time per stage", "", "| stage | s |", "|---|---:|"]
         lines += [f"| {k} | {v:.3f} |" for k, v in stages]

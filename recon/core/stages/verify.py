@@ -95,7 +95,7 @@ class Verify:
                 raw_matches=r.num_matches, merged_matches=int(len(mm)), verified_inliers=int(n_in),
                 distinct_inliers=distinct_correspondences(d.keypoints[a], d.keypoints[b], inl) if len(inl) else 0,
                 two_view_config=conf, cached=bool(cached), seconds=float(r.timings.get("total", 0.0)), reason=r.reason,
-                path=r.path, path_reason=r.path_reason, planned_path=r.planned_path))
+                path=r.path, path_reason=r.path_reason, planned_path=r.planned_path, finishing=r.finishing))
         confirmed = confirmed_counts(d.keypoints, d.pairs, inliers)
         for row, n_conf in zip(rows, confirmed, strict=True):
             row.confirmed_inliers = n_conf
