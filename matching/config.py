@@ -144,6 +144,12 @@ class MatcherConfig:
     guided_epipolar_min_ratio: float = 0.35
     """...and at least this fraction of the first round's matches: around a wrong F the band
     collects chance matches consistent with it (docs/decisions.md)."""
+    guided_epipolar_add: bool = False
+    """When the round's F-consistent union has no more matches than the first round (the first
+    round's matches off F's 1 px band outnumber the round's new ones: 12 of the 78 pairs of the
+    difficulty curve's 13-view facade, its nearest neighbours among them), keep the first round
+    whole and add the round's new F-consistent matches, instead of keeping the first round alone
+    (docs/decisions.md, "Adding the epipolar round's matches to a larger first round"). Off."""
     guided_epipolar_polish: bool = False
     """Polish the round's F (`matching_utils.polish_fundamental`: eight-point refits to the
     matches it explains, while they grow) before drawing the band: OpenCV's RANSAC returns a

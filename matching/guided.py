@@ -145,18 +145,27 @@ def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> P
         lambda fv, ft: epipolar_guided_match(fv.kpts, fv.descriptors, ft.kpts, ft.descriptors, F,
                                              cfg.guided_epipolar_px, cfg.guided_epipolar_ratio),
         tf, first=fm)
+    # third column: the match comes from the first round (rematch_views puts those first)
+    m_all = np.c_[m_all, np.arange(len(m_all)) < len(fm.matches)].astype(np.int32)
     # one match per reference position and per target keypoint (first round wins ties: it comes first)
     key = np.c_[np.round(kr[m_all[:, 0]] * 4).astype(np.int64), m_all[:, 1].astype(np.int64)]
     _, first = np.unique(key, axis=0, return_index=True)
     m_all, d_all = m_all[np.sort(first)], d_all[np.sort(first)]
     m_all, d_all = unique_train(m_all, d_all)
+    from_first, m_all = m_all[:, 2].astype(bool), m_all[:, :2]
     keep = epipolar_pair_distance(F, kr[m_all[:, 0]], tf.kpts[m_all[:, 1]]) <= cfg.guided_epipolar_px
     fm2 = compact(kr, tf.kpts, m_all[keep], d_all[keep])
     if len(fm2.matches) <= res.num_matches:
-        ctx.notes.append(f"epipolar round kept out: {len(fm2.matches)} F-consistent matches, the first round "
-                         f"{res.num_matches}")
-        return res
-    ctx.notes.append(f"epipolar round: {res.num_matches} -> {len(fm2.matches)} matches")
+        added = keep & ~from_first
+        if not (cfg.guided_epipolar_add and added.any()):
+            ctx.notes.append(f"epipolar round kept out: {len(fm2.matches)} F-consistent matches, the first round "
+                             f"{res.num_matches}")
+            return res
+        fm2 = compact(kr, tf.kpts, m_all[keep | from_first], d_all[keep | from_first])
+        ctx.notes.append(f"epipolar round added {int(added.sum())} F-consistent matches to the first round's "
+                         f"{int(from_first.sum())}: {res.num_matches} -> {len(fm2.matches)} matches")
+    else:
+        ctx.notes.append(f"epipolar round: {res.num_matches} -> {len(fm2.matches)} matches")
     out = ctx.to_result(Attempt("guided", ref, fm2, att.views, att.coarse, 0), res.reference_reason, res.f0, res.f1)
     out.escalation = res.escalation
     return out

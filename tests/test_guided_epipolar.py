@@ -167,3 +167,16 @@ def test_polished_fundamental_gains_gt_consistent_matches(tmp_path):
     (n0, good0), (n1, good1) = out[False], out[True]
     assert good1 > 1.1 * good0, out
     assert good1 / n1 > good0 / n0 + 0.03, out
+
+
+@pytest.mark.slow
+def test_adding_the_round_to_a_larger_first_round_adds_true_matches(tmp_path):
+    """`guided_epipolar_add`: on a rendered neighbouring pair whose first round has more matches
+    than the round's F-consistent union (so the round is kept out by default), the round's new
+    F-consistent matches join the whole first round, and they agree with the ground-truth
+    epipolar geometry (measured: 1352 -> 1617 matches, 231 of the 265 new ones within 1 px of the
+    true epipolar lines, against 96 % of the first round's)."""
+    out = _gt_consistent_counts(tmp_path, "view_01.png", "view_02.png", "guided_epipolar_add", 1.0)
+    (n0, good0), (n1, good1) = out[False], out[True]
+    assert n1 > 1.1 * n0, out
+    assert good1 - good0 >= 0.8 * (n1 - n0), out
