@@ -161,7 +161,8 @@ def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> P
             ctx.notes.append(f"epipolar round kept out: {len(fm2.matches)} F-consistent matches, the first round "
                              f"{res.num_matches}")
             return res
-        fm2 = compact(kr, tf.kpts, m_all[keep | from_first], d_all[keep | from_first])
+        keep |= from_first
+        fm2 = compact(kr, tf.kpts, m_all[keep], d_all[keep])
         ctx.notes.append(f"epipolar round added {int(added.sum())} F-consistent matches to the first round's "
                          f"{int(from_first.sum())}: {res.num_matches} -> {len(fm2.matches)} matches")
     else:

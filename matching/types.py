@@ -112,15 +112,10 @@ class PairResult:
         H = None if self.H_1_from_0 is None else np.asarray(np.linalg.inv(self.H_1_from_0), np.float64)
         ref: Reference | None = None if self.reference is None else (1 - self.reference)  # type: ignore[assignment]
         sizes = None if self.image_sizes is None else (self.image_sizes[1], self.image_sizes[0])
-        return PairResult(
-            method=self.method, kpts0=self.kpts1, kpts1=self.kpts0,
-            matches=self.matches[:, ::-1].copy(), distances=self.distances,
-            reference=ref, reference_reason=self.reference_reason, f0=self.f1, f1=self.f0,
-            best_views=self.best_views, coarse_scores=self.coarse_scores, H_1_from_0=H,
-            inlier_mask=self.inlier_mask, escalation=self.escalation, reason=self.reason,
-            path=self.path, path_reason=self.path_reason, planned_path=self.planned_path, verified=self.verified,
-            finishing=self.finishing, timings=dict(self.timings), image_sizes=sizes,
-        )
+        # every other field (diagnostics) is the same seen from either side
+        return dataclasses.replace(self, kpts0=self.kpts1, kpts1=self.kpts0, matches=self.matches[:, ::-1].copy(),
+                                   reference=ref, f0=self.f1, f1=self.f0, H_1_from_0=H,
+                                   timings=dict(self.timings), image_sizes=sizes)
 
     def in_original_frame(self, work_sizes: tuple[tuple[int, int], tuple[int, int]],
                           sizes: tuple[tuple[int, int], tuple[int, int]]) -> PairResult:
@@ -141,12 +136,10 @@ class PairResult:
 
     def without_matches(self, reason: str) -> PairResult:
         """This result with no matches and `reason`, its diagnostics (reference, views, coarse
-        scores, path, timings, verified count) kept."""
-        return PairResult.empty(self.method, reason, reference=self.reference, reference_reason=self.reference_reason,
-                                f0=self.f0, f1=self.f1, best_views=self.best_views, coarse_scores=self.coarse_scores,
-                                escalation=self.escalation, timings=self.timings, image_sizes=self.image_sizes,
-                                path=self.path, path_reason=self.path_reason, planned_path=self.planned_path,
-                                verified=self.verified, finishing=self.finishing)
+        scores, path, finishing notes, timings, verified count) kept; no homography."""
+        empty = PairResult.empty(self.method, reason)
+        return dataclasses.replace(self, kpts0=empty.kpts0, kpts1=empty.kpts1, matches=empty.matches,
+                                   distances=empty.distances, H_1_from_0=None, inlier_mask=None, reason=reason)
 
     @staticmethod
     def empty(method: str, reason: str, **kw) -> PairResult:
