@@ -150,6 +150,14 @@ class MatcherConfig:
     difficulty curve's 13-view facade, its nearest neighbours among them), keep the first round
     whole and add the round's new F-consistent matches, instead of keeping the first round alone
     (docs/decisions.md, "Adding the epipolar round's matches to a larger first round"). Off."""
+    guided_epipolar_neighbour_px: float = 0.0
+    """(>= 0) Drop the epipolar round's new matches (those the first round did not have) that lie
+    more than this many px of the target from where the affine of their 12 nearest first-round
+    F-consistent matches puts them (`refine.neighbour_transfer_residuals`): the band admits wrong
+    matches that sit on the right epipolar line but not where the surface around them goes. 0 =
+    off (the default: alone it loses the difficulty curve's 78° step, and with the polished F and
+    ratio 0.8, where it makes the renders most precise, fountain_P11's rotation error is above
+    stock's; docs/decisions.md, "Neighbour check of the epipolar round")."""
     guided_epipolar_polish: bool = False
     """Polish the round's F (`matching_utils.polish_fundamental`: eight-point refits to the
     matches it explains, while they grow) before drawing the band: OpenCV's RANSAC returns a

@@ -28,6 +28,7 @@ from .fine import (
     target_features,
 )
 from .matching_utils import polish_fundamental, ransac_homography, unique_train
+from .refine import neighbour_transfer_residuals
 from .types import PairResult, ViewParams
 from .viewfeatures import view_features
 from .views import capped_view
@@ -128,6 +129,23 @@ def trusted_fundamental(ctx: MatchContext, fm: FineMatches) -> NDArray[np.float6
     return cast(NDArray[np.float64], F)
 
 
+def off_their_neighbours(ctx: MatchContext, kr: NDArray, kt: NDArray, m_all: NDArray, support: NDArray[np.bool_],
+                         new: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """(len(m_all),) True for the `new` matches whose target point lies more than
+    `guided_epipolar_neighbour_px` from where the local affine of their 12 nearest `support`
+    matches puts them (`refine.neighbour_transfer_residuals`; kept where no fit exists); the
+    count goes to `ctx.notes`."""
+    off = np.zeros(len(m_all), bool)
+    idx = np.flatnonzero(new)
+    if len(idx) == 0:
+        return off
+    res = neighbour_transfer_residuals(kr[m_all[support, 0]], kt[m_all[support, 1]], kr[m_all[idx, 0]],
+                                       kt[m_all[idx, 1]], k=12)
+    off[idx] = res > ctx.cfg.guided_epipolar_neighbour_px  # NaN (no fit) compares False: kept
+    ctx.notes.append(f"neighbour check dropped {int(off.sum())} of the round's {len(idx)} new F-consistent matches")
+    return off
+
+
 def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> PairResult:
     """Re-match `att`'s fine views within `guided_epipolar_px` of the epipolar lines of a
     fundamental matrix fitted to its matches (`trusted_fundamental`), ratio
@@ -154,6 +172,8 @@ def guided_epipolar_round(ctx: MatchContext, att: Attempt, res: PairResult) -> P
     m_all, d_all = unique_train(m_all, d_all)
     from_first, m_all = m_all[:, 2].astype(bool), m_all[:, :2]
     keep = epipolar_pair_distance(F, kr[m_all[:, 0]], tf.kpts[m_all[:, 1]]) <= cfg.guided_epipolar_px
+    if cfg.guided_epipolar_neighbour_px > 0:
+        keep &= ~off_their_neighbours(ctx, kr, tf.kpts, m_all, keep & from_first, keep & ~from_first)
     fm2 = compact(kr, tf.kpts, m_all[keep], d_all[keep])
     if len(fm2.matches) <= res.num_matches:
         added = keep & ~from_first

@@ -127,6 +127,37 @@ def local_affines_at(pts0: NDArray, pts1: NDArray, query: NDArray[np.int64], k: 
     return out
 
 
+def neighbour_transfer_residuals(support0: NDArray, support1: NDArray, q0: NDArray, q1: NDArray, k: int,
+                                 robust_rounds: int = 2) -> NDArray[np.float64]:
+    """(Q,) distance, px of image 1, between each queried match's image-1 point `q1` and where the
+    affine fitted to its `k` nearest support matches (nearest to `q0` in image 0; `support0` ->
+    `support1`) puts `q0`, with `local_affines_at`'s robust refits. A wrong match that still fits
+    the epipolar geometry sits along the right line but away from where its neighbours say the
+    surface goes. NaN where fewer than 4 support matches exist or a fit is degenerate."""
+    s0 = np.asarray(support0, np.float64).reshape(-1, 2)
+    s1 = np.asarray(support1, np.float64).reshape(-1, 2)
+    p0 = np.asarray(q0, np.float64).reshape(-1, 2)
+    p1 = np.asarray(q1, np.float64).reshape(-1, 2)
+    out = np.full(len(p0), np.nan)
+    if len(s0) < 4 or len(p0) == 0:
+        return out
+    k = min(k, len(s0))
+    _, nb = cKDTree(s0).query(p0, k=k)
+    nb = np.asarray(nb).reshape(len(p0), k)
+    X = s0[nb] - p0[:, None, :]  # neighbours relative to the queried point: the fit's offset is its prediction
+    Y = s1[nb]
+    D = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)
+    w = np.ones(nb.shape)
+    sol, ok = _weighted_affine_fit(D, Y, w)
+    for _ in range(max(0, int(robust_rounds))):
+        res = np.linalg.norm(np.einsum("qki,qij->qkj", D, sol) - Y, axis=2)
+        keep = res <= np.maximum(TRIM_FLOOR_PX, TRIM_MEDIANS * np.median(res, axis=1, keepdims=True))
+        w = np.where(keep.sum(axis=1, keepdims=True) >= 4, keep, w).astype(np.float64)
+        sol, ok = _weighted_affine_fit(D, Y, w)
+    out[ok] = np.linalg.norm(sol[ok, 2, :] - p1[ok], axis=1)
+    return out
+
+
 def _weighted_affine_fit(D: NDArray, Y: NDArray, w: NDArray) -> tuple[NDArray, NDArray[np.bool_]]:
     """(sol (Q, 3, 2), ok): weighted least squares of D (Q, k, 3) -> Y (Q, k, 2) per query, by
     the normal equations; `ok` False (and sol 0) where they are singular."""

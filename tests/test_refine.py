@@ -17,6 +17,7 @@ from matching.refine import (
     local_affines_at,
     local_affines_from_homography,
     local_affines_from_neighbours,
+    neighbour_transfer_residuals,
     patches,
     refine_matches,
     refine_points0,
@@ -179,6 +180,27 @@ def test_robust_neighbour_affines_ignore_wrong_matches():
     q = np.array([3, 700])
     np.testing.assert_allclose(local_affines_at(pts0, pts1, q, 12, 2),
                                local_affines_from_neighbours(pts0, pts1, 12, 2)[q], atol=1e-12)
+
+
+def test_neighbour_residuals_flag_matches_off_the_surface_of_their_neighbours():
+    """Support matches of a tilted homography (a fifth of them 4 px off): queried true matches
+    land where their neighbours' robust affine puts them, queried wrong ones slid 6 px along any
+    direction (e.g. an epipolar line) do not; fewer than 4 support matches give NaN."""
+    _, _, H = _pair()
+    rng = np.random.default_rng(7)
+    s0 = np.stack([rng.uniform(60, 580, 800), rng.uniform(60, 420, 800)], 1)
+    s1 = project(H, s0) + rng.normal(0, 0.2, s0.shape)
+    bad = rng.random(len(s0)) < 0.2
+    s1[bad] += rng.normal(0, 4.0, (bad.sum(), 2))
+    q0 = np.stack([rng.uniform(80, 560, 200), rng.uniform(80, 400, 200)], 1)
+    q1 = project(H, q0)
+    slide = rng.normal(size=(200, 2))
+    q1_wrong = q1 + 6.0 * slide / np.linalg.norm(slide, axis=1, keepdims=True)
+    good = neighbour_transfer_residuals(s0, s1, q0, q1, k=12)
+    wrong = neighbour_transfer_residuals(s0, s1, q0, q1_wrong, k=12)
+    assert np.median(good) < 0.3 and np.mean(good < 2.0) > 0.97, np.percentile(good, [50, 97])
+    assert np.mean(wrong > 2.0) > 0.97, np.percentile(wrong, [3, 50])
+    assert np.isnan(neighbour_transfer_residuals(s0[:3], s1[:3], q0, q1, k=12)).all()
 
 
 def test_resolution_matched_patches_localise_a_zoomed_tilt_better():
