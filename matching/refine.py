@@ -114,13 +114,7 @@ def local_affines_at(pts0: NDArray, pts1: NDArray, query: NDArray[np.int64], k: 
     X = p0[nb] - p0[q][:, None, :]  # (Q, k, 2)
     Y = p1[nb] - p1[q][:, None, :]
     D = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)  # (Q, k, 3)
-    w = np.ones(nb.shape)
-    sol, ok = _weighted_affine_fit(D, Y, w)
-    for _ in range(max(0, int(robust_rounds))):  # keep the neighbours the fit explains (at least 4)
-        res = np.linalg.norm(np.einsum("qki,qij->qkj", D, sol) - Y, axis=2)
-        keep = res <= np.maximum(TRIM_FLOOR_PX, TRIM_MEDIANS * np.median(res, axis=1, keepdims=True))
-        w = np.where(keep.sum(axis=1, keepdims=True) >= 4, keep, w).astype(np.float64)
-        sol, ok = _weighted_affine_fit(D, Y, w)
+    sol, ok = _trimmed_affine_fit(D, Y, robust_rounds)
     A = np.transpose(sol[:, :2, :], (0, 2, 1))
     good = ok & np.isfinite(A).all(axis=(1, 2)) & (np.abs(np.linalg.det(A)) > 1e-6)
     out[good] = A[good]
@@ -147,15 +141,23 @@ def neighbour_transfer_residuals(support0: NDArray, support1: NDArray, q0: NDArr
     X = s0[nb] - p0[:, None, :]  # neighbours relative to the queried point: the fit's offset is its prediction
     Y = s1[nb]
     D = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)
-    w = np.ones(nb.shape)
+    sol, ok = _trimmed_affine_fit(D, Y, robust_rounds)
+    out[ok] = np.linalg.norm(sol[ok, 2, :] - p1[ok], axis=1)
+    return out
+
+
+def _trimmed_affine_fit(D: NDArray, Y: NDArray, robust_rounds: int) -> tuple[NDArray, NDArray[np.bool_]]:
+    """`_weighted_affine_fit` of D (Q, k, 3) -> Y (Q, k, 2), then `robust_rounds` refits on the
+    neighbours each fit explains (residual within `TRIM_MEDIANS` x the median, at least
+    `TRIM_FLOOR_PX`; all kept where fewer than 4 would remain)."""
+    w = np.ones(D.shape[:2])
     sol, ok = _weighted_affine_fit(D, Y, w)
     for _ in range(max(0, int(robust_rounds))):
         res = np.linalg.norm(np.einsum("qki,qij->qkj", D, sol) - Y, axis=2)
         keep = res <= np.maximum(TRIM_FLOOR_PX, TRIM_MEDIANS * np.median(res, axis=1, keepdims=True))
         w = np.where(keep.sum(axis=1, keepdims=True) >= 4, keep, w).astype(np.float64)
         sol, ok = _weighted_affine_fit(D, Y, w)
-    out[ok] = np.linalg.norm(sol[ok, 2, :] - p1[ok], axis=1)
-    return out
+    return sol, ok
 
 
 def _weighted_affine_fit(D: NDArray, Y: NDArray, w: NDArray) -> tuple[NDArray, NDArray[np.bool_]]:

@@ -162,15 +162,21 @@ def test_neighbour_affines_recover_the_local_map():
 
 
 
+def _matches_a_fifth_off(n: int, rng: np.random.Generator):
+    """(H_1_from_0 of `_pair`, pts0, pts1): `n` matches under it with 0.2 px noise, a fifth of
+    them moved a further 4 px (wrong matches, or points across a depth edge)."""
+    _, _, H = _pair()
+    pts0 = np.stack([rng.uniform(60, 580, n), rng.uniform(60, 420, n)], 1)
+    pts1 = project(H, pts0) + rng.normal(0, 0.2, pts0.shape)
+    wrong = rng.random(n) < 0.2
+    pts1[wrong] += rng.normal(0, 4.0, (wrong.sum(), 2))
+    return H, pts0, pts1
+
+
 def test_robust_neighbour_affines_ignore_wrong_matches():
     """A fifth of the matches 4 px off (wrong matches, or points across a depth edge): the plain
     least-squares fit to 12 neighbours is tilted by them, the trimmed refits are not."""
-    _, _, H = _pair()
-    rng = np.random.default_rng(4)
-    pts0 = np.stack([rng.uniform(60, 580, 1500), rng.uniform(60, 420, 1500)], 1)
-    pts1 = project(H, pts0) + rng.normal(0, 0.2, pts0.shape)
-    wrong = rng.random(len(pts0)) < 0.2
-    pts1[wrong] += rng.normal(0, 4.0, (wrong.sum(), 2))
+    H, pts0, pts1 = _matches_a_fifth_off(1500, np.random.default_rng(4))
     J = local_affines_from_homography(H, pts0)
     err = {r: np.nanmedian(np.abs(local_affines_from_neighbours(pts0, pts1, 12, r) - J).max(axis=(1, 2)))
            for r in (0, 2)}
@@ -186,12 +192,8 @@ def test_neighbour_residuals_flag_matches_off_the_surface_of_their_neighbours():
     """Support matches of a tilted homography (a fifth of them 4 px off): queried true matches
     land where their neighbours' robust affine puts them, queried wrong ones slid 6 px along any
     direction (e.g. an epipolar line) do not; fewer than 4 support matches give NaN."""
-    _, _, H = _pair()
     rng = np.random.default_rng(7)
-    s0 = np.stack([rng.uniform(60, 580, 800), rng.uniform(60, 420, 800)], 1)
-    s1 = project(H, s0) + rng.normal(0, 0.2, s0.shape)
-    bad = rng.random(len(s0)) < 0.2
-    s1[bad] += rng.normal(0, 4.0, (bad.sum(), 2))
+    H, s0, s1 = _matches_a_fifth_off(800, rng)
     q0 = np.stack([rng.uniform(80, 560, 200), rng.uniform(80, 400, 200)], 1)
     q1 = project(H, q0)
     slide = rng.normal(size=(200, 2))
