@@ -211,12 +211,16 @@ def patches(img: NDArray[np.float32], centres: NDArray, P: NDArray, half: int, c
     out = np.empty((n, size, size), np.float32)
     if n == 0:
         return out
-    g = np.stack(np.meshgrid(np.arange(size), np.arange(size)), axis=-1).reshape(-1, 2) - half  # (S*S, 2) x, y
+    gy, gx = np.divmod(np.arange(size * size, dtype=np.float64), size)  # row-major grid, x fastest
+    gx -= half
+    gy -= half
     Pinv = np.linalg.inv(np.asarray(P, np.float64))
     c = np.asarray(centres, np.float64)
     for i in range(0, n, chunk):
-        xy = (c[i:i + chunk, None, :] + g[None] @ np.transpose(Pinv[i:i + chunk], (0, 2, 1))).astype(np.float32)  # (m, S*S, 2)
-        m = len(xy)
+        Q, m = Pinv[i:i + chunk], min(chunk, n - i)
+        xy = np.empty((m, size * size, 2), np.float32)  # x = c + Pinv g per grid point, as broadcasts
+        xy[:, :, 0] = c[i:i + m, 0, None] + (Q[:, 0, 0, None] * gx + Q[:, 0, 1, None] * gy)
+        xy[:, :, 1] = c[i:i + m, 1, None] + (Q[:, 1, 0, None] * gx + Q[:, 1, 1, None] * gy)
         out[i:i + m] = cv2.remap(img, xy.reshape(m * size, size, 2), None, cv2.INTER_LINEAR,
                                  borderMode=cv2.BORDER_REFLECT).reshape(m, size, size)
     return out
