@@ -108,12 +108,8 @@ def local_affines_at(pts0: NDArray, pts1: NDArray, query: NDArray[np.int64], k: 
         return out
     p0 = np.asarray(pts0, np.float64).reshape(-1, 2)
     p1 = np.asarray(pts1, np.float64).reshape(-1, 2)
-    k = min(k, n)
-    _, nb = cKDTree(p0).query(p0[q], k=k)
-    nb = np.asarray(nb).reshape(len(q), k)
-    X = p0[nb] - p0[q][:, None, :]  # (Q, k, 2)
+    nb, D = _neighbour_design(p0, p0[q], k)
     Y = p1[nb] - p1[q][:, None, :]
-    D = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)  # (Q, k, 3)
     sol, ok = _trimmed_affine_fit(D, Y, robust_rounds)
     A = np.transpose(sol[:, :2, :], (0, 2, 1))
     good = ok & np.isfinite(A).all(axis=(1, 2)) & (np.abs(np.linalg.det(A)) > 1e-6)
@@ -135,15 +131,22 @@ def neighbour_transfer_residuals(support0: NDArray, support1: NDArray, q0: NDArr
     out = np.full(len(p0), np.nan)
     if len(s0) < 4 or len(p0) == 0:
         return out
-    k = min(k, len(s0))
-    _, nb = cKDTree(s0).query(p0, k=k)
-    nb = np.asarray(nb).reshape(len(p0), k)
-    X = s0[nb] - p0[:, None, :]  # neighbours relative to the queried point: the fit's offset is its prediction
-    Y = s1[nb]
-    D = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)
-    sol, ok = _trimmed_affine_fit(D, Y, robust_rounds)
+    nb, D = _neighbour_design(s0, p0, k)
+    sol, ok = _trimmed_affine_fit(D, s1[nb], robust_rounds)  # absolute targets: the fit's offset is its prediction
     out[ok] = np.linalg.norm(sol[ok, 2, :] - p1[ok], axis=1)
     return out
+
+
+def _neighbour_design(support0: NDArray[np.float64], centres: NDArray[np.float64], k: int
+                      ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """(nb, D): the indices (Q, k) of the `k` (at most all) `support0` points nearest each of
+    `centres`, and the design rows (Q, k, 3) [dx, dy, 1] of those neighbours relative to their
+    centre, for the affine fits of `local_affines_at` and `neighbour_transfer_residuals`."""
+    k = min(k, len(support0))
+    _, nb = cKDTree(support0).query(centres, k=k)
+    nb = np.asarray(nb).reshape(len(centres), k)
+    X = support0[nb] - centres[:, None, :]
+    return nb, np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=2)
 
 
 def _trimmed_affine_fit(D: NDArray, Y: NDArray, robust_rounds: int) -> tuple[NDArray, NDArray[np.bool_]]:
