@@ -22,6 +22,7 @@ from recon.core.sfm import (
     SfmResult,
     connected_images,
     final_bundle_adjustment,
+    global_bundle_adjustment,
     map_with_retries,
     mapping_options,
     model_stats,
@@ -376,6 +377,49 @@ def test_final_robust_adjustment_resists_observations_a_few_px_off(tmp_path):
     robust_rot, _ = pose_errors(robust, gt)
     assert squared_rot > 2 * clean_rot  # the moved observations do pull a squared loss
     assert robust_rot < 0.5 * squared_rot and robust_rot < 1.5 * clean_rot
+
+
+def test_global_bundle_adjustment_is_colmaps_to_the_bit_and_keeps_colmap_quiet(tmp_path, capfd):
+    """Our copy of `pycolmap.bundle_adjustment` (which builds an OptionManager, and that resets
+    glog's level: its heading and timer reached stderr under `quiet_colmap`) gives the same
+    poses, points, intrinsics and point errors to the bit, prints nothing and leaves the log
+    level where it was."""
+    db = tmp_path / "database.db"
+    synthesize(db, num_frames=6, num_points3D=200, keypoint_noise_px=0.5)
+    rec = _map(db).reconstruction
+    for pid, p in rec.points3D.items():  # start off the optimum, so the adjustment has work
+        p.xyz = p.xyz + 0.01 * np.sin(pid)
+    theirs, ours = _copy_model(rec, tmp_path / "theirs"), _copy_model(rec, tmp_path / "ours")
+
+    def options() -> pycolmap.BundleAdjustmentOptions:
+        o = pycolmap.BundleAdjustmentOptions()
+        o.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        o.ceres.solver_options.num_threads = 1
+        o.print_summary = False
+        return o
+
+    old = pycolmap.logging.minloglevel
+    try:
+        pycolmap.logging.minloglevel = 3
+        capfd.readouterr()
+        global_bundle_adjustment(ours, options())
+        printed = capfd.readouterr()
+        assert pycolmap.logging.minloglevel == 3
+        assert "bundle adjustment" not in printed.err + printed.out
+        pycolmap.bundle_adjustment(theirs, options())
+    finally:
+        pycolmap.logging.minloglevel = old
+    assert sorted(ours.points3D) == sorted(theirs.points3D)
+    for pid in theirs.points3D:
+        assert np.array_equal(ours.points3D[pid].xyz, theirs.points3D[pid].xyz)
+        assert ours.points3D[pid].error == theirs.points3D[pid].error
+    for image_id in theirs.images:
+        assert np.array_equal(ours.images[image_id].cam_from_world().matrix(),
+                              theirs.images[image_id].cam_from_world().matrix())
+    for camera_id in theirs.cameras:
+        assert np.array_equal(ours.cameras[camera_id].params, theirs.cameras[camera_id].params)
+    moved = max(np.abs(ours.points3D[pid].xyz - rec.points3D[pid].xyz).max() for pid in rec.points3D)
+    assert moved > 1e-3  # it did adjust
 
 
 def test_outlier_pass_drops_the_observations_the_loss_discounts_and_keeps_the_rest(tmp_path):

@@ -157,6 +157,18 @@ def _debug_wanted(argv: list[str] | None) -> bool:
     return any(a in ("-v", "--verbose") for a in args)
 
 
+def _quiet_opencv(argv: list[str] | None) -> None:
+    """Keep OpenCV's own C++ log lines (a broken PNG's "[ WARN:0@0.8] global grfmt_png.cpp ..." and
+    "[ERROR:0@0.8] ... IHDR chunk shall be first") off stderr: the CLI reports such inputs itself,
+    on one line of its own, and OpenCV's failures that matter raise. `-v`, `RECON_DEBUG=1` or the
+    user's own `OPENCV_LOG_LEVEL` keep OpenCV's default."""
+    if _debug_wanted(argv) or os.environ.get("OPENCV_LOG_LEVEL"):
+        return
+    import cv2
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
 def _exit_code_for(e: BaseException, argv: list[str] | None) -> int:
     """Print the one line for `e` on stderr and return the exit code (see module doc)."""
 
@@ -228,6 +240,7 @@ def main(argv: list[str] | None = None) -> int:
             from matching.memory import return_large_buffers_to_os
 
             return_large_buffers_to_os()
+            _quiet_opencv(argv)
             _register_commands()
             # with standalone_mode=False click returns the code of `typer.Exit(n)` (and typer
             # turns a KeyboardInterrupt inside a command into a returned 130) instead of raising

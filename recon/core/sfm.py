@@ -408,7 +408,24 @@ def _adjust(rec: pycolmap.Reconstruction, loss: str, scale_px: float, iterations
     # COLMAP prints a 10-line solver report per adjustment through a path its log level does not
     # reach (`recon.log.quiet_colmap`): only with `recon -v`. Printing changes no result.
     o.print_summary = colmap_verbose()
-    pycolmap.bundle_adjustment(rec, o)
+    global_bundle_adjustment(rec, o)
+
+
+def global_bundle_adjustment(rec: pycolmap.Reconstruction, options: pycolmap.BundleAdjustmentOptions) -> None:
+    """`pycolmap.bundle_adjustment(rec, options)` step for step (COLMAP's
+    `BundleAdjustmentController::Run`: observations behind a camera dropped, every registered
+    image adjusted, the gauge fixed by two cameras' poses, point errors updated), without the
+    `OptionManager` that call builds: constructing one resets glog's level, so every call printed
+    its heading and timer on stderr whatever `recon.log.quiet_colmap` had set, and left COLMAP
+    logging everything for the rest of the stage. Same adjustment, same result to the bit
+    (`tests/test_sfm.py`)."""
+    pycolmap.ObservationManager(rec).filter_observations_with_negative_depth()
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+    rec.update_point_3d_errors()
 
 
 def _filter(rec: pycolmap.Reconstruction, max_reproj_error_px: float, min_tri_angle_deg: float) -> int:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -17,6 +18,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 INJECT = Path(__file__).resolve().parent / "inject"
 TIMEOUT_S = 180  # a hang guard only (the machine may be loaded), never a timing assertion
+FOREIGN_LOG_LINE = re.compile(r"^(\[ ?(WARN|ERROR|INFO):\d|[IWE]\d{8} \d\d:\d\d:\d\d)")
+"""A log line of a library rather than of recon: OpenCV's ("[ WARN:0@0.8] global ...",
+"[ERROR:0@0.8] ...") or COLMAP's glog ("I20261208 00:13:01.557255 ... bundle_adjustment.cc:46]")."""
 FAST = ["--method", "sift", "--max-size", "320", "--no-progress", "--rerun", "none"]
 PRESET, SIZE = "facade-4x30", (320, 240)
 
@@ -98,6 +102,7 @@ def check(res: Result, code: int, *, text: str | None = None) -> Result:
     assert res.rc == code, f"exit {res.rc}, expected {code}\n{where}"
     assert "Traceback" not in res.err and "Traceback" not in res.out, where
     assert "*** Aborted at" not in res.err and "stack trace:" not in res.err, where
+    assert not [ln for ln in res.err.splitlines() if FOREIGN_LOG_LINE.match(ln)], where  # OpenCV's, glog's
     assert len(res.error_lines) <= 1, where
     if code == 2:
         assert len(res.error_lines) == 1, where
