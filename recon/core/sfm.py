@@ -411,6 +411,14 @@ def _adjust(rec: pycolmap.Reconstruction, loss: str, scale_px: float, iterations
     global_bundle_adjustment(rec, o)
 
 
+def _every_registered_image(rec: pycolmap.Reconstruction) -> pycolmap.BundleAdjustmentConfig:
+    """An adjustment of every registered image of `rec` (and, through them, its points)."""
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    return config
+
+
 def global_bundle_adjustment(rec: pycolmap.Reconstruction, options: pycolmap.BundleAdjustmentOptions) -> None:
     """`pycolmap.bundle_adjustment(rec, options)` step for step (COLMAP's
     `BundleAdjustmentController::Run`: observations behind a camera dropped, every registered
@@ -420,9 +428,7 @@ def global_bundle_adjustment(rec: pycolmap.Reconstruction, options: pycolmap.Bun
     logging everything for the rest of the stage. Same adjustment, same result to the bit
     (`tests/test_sfm.py`)."""
     pycolmap.ObservationManager(rec).filter_observations_with_negative_depth()
-    config = pycolmap.BundleAdjustmentConfig()
-    for image_id in rec.reg_image_ids():
-        config.add_image(image_id)
+    config = _every_registered_image(rec)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
     rec.update_point_3d_errors()
@@ -492,9 +498,7 @@ def _principal_point_sigma(rec: pycolmap.Reconstruction) -> float:
     if rec.num_reg_images() > PP_SIGMA_MAX_IMAGES:
         return math.inf
     o = _full_adjustment_options(refine_principal_point=True)
-    config = pycolmap.BundleAdjustmentConfig()
-    for image_id in rec.reg_image_ids():
-        config.add_image(image_id)
+    config = _every_registered_image(rec)
     problem = pycolmap.Reconstruction(rec)  # the adjuster holds pointers into the model's blocks
     cov_options = pycolmap.BACovarianceOptions()
     cov_options.params = pycolmap.BACovarianceOptionsParams.ALL
