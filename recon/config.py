@@ -369,14 +369,16 @@ class SfmConfig:
     (`recon.core.sfm.OUTLIER_SCALES`; lower reprojection and equal or lower rotation errors for
     ours and for stock on the real scenes, docs/decisions.md)."""
 
-    final_ba_principal_point: str = field(default="fixed", metadata={"choices": "recon.core.sfm:PRINCIPAL_POINT_MODES"})
-    """The principal point in the final adjustment. fixed (default): COLMAP's image centre.
-    refine: freed; where a capture constrains it (castle_P30, fountain_P11: a true principal
-    point 15-20 px off-centre) the median rotation error falls from 0.43° / 0.23° to 0.07° /
-    0.06°, but where it does not (cameras in a row at one height) it drifts by 12-200 px and the
-    poses with it. auto: freed only when the adjustment's covariance says the views determine it
-    to 0.2 % of the image (`recon.core.sfm.PP_SIGMA_MAX`; one covariance estimate, about a second).
-    docs/decisions.md, "The principal point in the final adjustment"."""
+    final_ba_principal_point: str = field(default="auto", metadata={"choices": "recon.core.sfm:PRINCIPAL_POINT_MODES"})
+    """The principal point in the final adjustment. auto (default): freed only when the
+    adjustment's covariance says the views determine it to 0.2 % of the image
+    (`recon.core.sfm.PP_SIGMA_MAX`; one covariance estimate, about a second): where a capture
+    constrains it (castle_P30, fountain_P11, whose calibrated principal point lies 15-20 px
+    off-centre) the median rotation error falls from 0.43° / 0.23° to 0.07° / 0.05°, while
+    cameras in a row at one height (every render here) keep it fixed. fixed: COLMAP's image
+    centre, as COLMAP's own mapper does. refine: always freed; where the views do not determine
+    it, it drifts by 12-200 px and the poses with it. docs/decisions.md, "The principal point in
+    the final adjustment"."""
 
     def __post_init__(self) -> None:
         from recon.core.global_sfm import MAPPERS

@@ -205,3 +205,26 @@ def test_rerun_summary_names_the_final_adjustment_when_it_ran():
                                       "mean_reprojection_error_before": 0.902, "outlier_threshold_px": 1.1,
                                       "second_scale_px": 0.3667, "outliers_dropped": 57})
     assert "(scale 0.41 px, 57 observations over 1.10 px dropped) | 0.902 |" in summary_markdown(with_outliers)
+
+
+def test_summaries_say_what_the_final_adjustment_did_with_the_principal_point():
+    from recon.viz.rerun_log import summary_markdown
+
+    def with_pp(**pp) -> RunReport:
+        return _report(final_ba={"loss": "cauchy", "applied": True, "scale_px": 0.4123, "auto_scale": True,
+                                 "mean_reprojection_error_before": 0.902, **pp})
+
+    freed = with_pp(principal_point="auto", principal_point_refined=True, principal_point_sigma=3.6e-5)
+    kept = with_pp(principal_point="auto", principal_point_refined=False, principal_point_sigma=0.0176)
+    undetermined = with_pp(principal_point="auto", principal_point_refined=False, principal_point_sigma=None)
+    assert "| principal point (auto) | refined (sd 0.0036 % of the image, limit 0.2 %) |" in summary_markdown(freed)
+    assert "| principal point (auto) | fixed at the image centre (sd 1.8 % of the image, limit 0.2 %) |" \
+        in summary_markdown(kept)
+    assert "fixed at the image centre (the views do not determine it)" in summary_markdown(undetermined)
+    assert "| principal point (fixed) | fixed at the image centre |" in summary_markdown(
+        with_pp(principal_point="fixed", principal_point_refined=False))
+    assert "principal point" not in summary_markdown(_report())  # a report of before the field
+    console = Console(record=True, width=160)
+    console.print(summary_table(freed))
+    text = console.export_text()
+    assert "principal point (auto)" in text and "refined (sd 0.0036 % of the image" in text

@@ -261,6 +261,24 @@ def final_ba_row(report: RunReport) -> tuple[str, str] | None:
             f"{fba['mean_reprojection_error_before']:.3f}")
 
 
+def principal_point_row(report: RunReport) -> tuple[str, str] | None:
+    """(label, value) of what the final adjustment did with the principal point (`auto`: freed
+    or kept at the image centre, with the covariance's standard deviation against its limit),
+    for the summaries (console and Rerun); None when the step did not run."""
+    fba = report.final_ba or {}
+    if not fba.get("applied") or "principal_point" not in fba:
+        return None
+    where = "refined" if fba.get("principal_point_refined") else "fixed at the image centre"
+    if fba["principal_point"] != "auto":
+        return (f"principal point ({fba['principal_point']})", where)
+    from recon.core.sfm import PP_SIGMA_MAX
+
+    sigma = fba.get("principal_point_sigma")
+    how = ("the views do not determine it" if sigma is None else
+           f"sd {100 * sigma:.2g} % of the image, limit {100 * PP_SIGMA_MAX:.2g} %")
+    return ("principal point (auto)", f"{where} ({how})")
+
+
 def summary_table(report: RunReport):
     """A rich Table with the headline numbers and seconds per stage."""
     from rich.table import Table
@@ -292,6 +310,9 @@ def summary_table(report: RunReport):
     before_final_ba = final_ba_row(report)
     if before_final_ba:
         t.add_row(f"  {before_final_ba[0]}", before_final_ba[1])
+    principal_point = principal_point_row(report)
+    if principal_point:
+        t.add_row(f"  {principal_point[0]}", principal_point[1])
     t.add_row("pairs (computed / cached)", f"{report.pairs_computed} / {report.pairs_cached}")
     if report.method == "extra-affine":
         mode = f" (--simulate {report.simulate_used})" if report.simulate_used else ""

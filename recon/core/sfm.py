@@ -368,7 +368,7 @@ class FinalBaConfig:
     max_reproj_error_px: float = 4.0
     min_tri_angle_deg: float = 1.5
     outlier_scales: float = OUTLIER_SCALES  # 0 = one pass, the mapper's filter only
-    principal_point: str = "fixed"  # fixed / refine / auto (`PRINCIPAL_POINT_MODES`)
+    principal_point: str = "auto"  # auto / fixed / refine (`PRINCIPAL_POINT_MODES`)
 
 
 def _loss_scale(rec: pycolmap.Reconstruction, cfg: FinalBaConfig) -> float:

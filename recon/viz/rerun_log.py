@@ -73,7 +73,7 @@ from numpy.typing import NDArray
 
 from matching.types import PairResult
 from recon.core.observer import BaseRunObserver
-from recon.core.report import final_ba_row
+from recon.core.report import final_ba_row, principal_point_row
 
 RECORDING_NAME = "recording.rrd"
 SINK_KINDS = ("save", "spawn", "connect", "none")
@@ -451,6 +451,7 @@ def summary_markdown(report: Any) -> str:
     err = report.mean_reprojection_error
     verified = sum(1 for p in report.pairs if p.verified_inliers > 0)
     before_final_ba = final_ba_row(report)
+    principal_point = principal_point_row(report)
     lines = [f"# recon run: {Path(report.scene).name}", "",
              f"**status:** {report.status}" + (f" — {report.message}" if report.message else ""), "",
              "| metric | value |", "|---|---:|",
@@ -460,6 +461,7 @@ def summary_markdown(report: Any) -> str:
              f"| mean track length (model) | {report.mean_track_length:.2f} |",
              f"| mean reprojection error (px) | {'-' if err is None else f'{err:.3f}'} |",
              *([f"| {before_final_ba[0]} | {before_final_ba[1]} |"] if before_final_ba else []),
+             *([f"| {principal_point[0]} | {principal_point[1]} |"] if principal_point else []),
              f"| models (sizes) | {report.num_models} ({', '.join(map(str, report.model_sizes)) or '-'}) |",
              f"| pairs verified | {verified} / {len(report.pairs)} |",
              f"| pairs computed / cached | {report.pairs_computed} / {report.pairs_cached} |",
