@@ -40,16 +40,18 @@ def _rendered_pair(tmp_path, a: str, b: str):
     return store, _F_from(gt[a].cam_from_world, gt[b].cam_from_world, gt[a].K, gt[b].K)
 
 
-def _gt_consistent_counts(tmp_path, a: str, b: str, option: str, within_px: float) -> dict[bool, tuple[int, int]]:
-    """`recon run`'s matcher on the rendered pair (`_rendered_pair`) with the boolean matcher
-    `option` off and on: {value: (matches, matches within `within_px` of the true epipolar line)}."""
+def _gt_consistent_counts(tmp_path, a: str, b: str, option: str, within_px: float,
+                          **fixed: object) -> dict[bool, tuple[int, int]]:
+    """`recon run`'s matcher on the rendered pair (`_rendered_pair`), with the matcher options
+    `fixed`, and the boolean matcher `option` off and on: {value: (matches, matches within
+    `within_px` of the true epipolar line)}."""
     from recon.core.pipeline import make_matcher
 
     store, F = _rendered_pair(tmp_path, a, b)
     out = {}
     for value in (False, True):
         m = make_matcher("extra-affine")
-        m.cfg = dataclasses.replace(m.cfg, **{option: value})
+        m.cfg = dataclasses.replace(m.cfg, **fixed, **{option: value})
         p0, p1 = m.match(store, a, b).matched_points(inliers_only=False)
         err = epipolar_pair_distance(F, p0, p1)
         out[value] = (len(err), int((err < within_px).sum()))
@@ -174,9 +176,13 @@ def test_adding_the_round_to_a_larger_first_round_adds_true_matches(tmp_path):
     """`guided_epipolar_add`: on a rendered neighbouring pair whose first round has more matches
     than the round's F-consistent union (so the round is kept out by default), the round's new
     F-consistent matches join the whole first round, and they agree with the ground-truth
-    epipolar geometry (measured: 1352 -> 1617 matches, 231 of the 265 new ones within 1 px of the
-    true epipolar lines, against 96 % of the first round's)."""
-    out = _gt_consistent_counts(tmp_path, "view_01.png", "view_02.png", "guided_epipolar_add", 1.0)
+    epipolar geometry. The band is narrowed to 0.35 px so that the union is the smaller one on
+    every CPU (at the default 1 px the two counts lie within a few % and which is larger depends
+    on the CPU's SIFT: results are deterministic per machine, not across machines); measured on
+    an AMD EPYC: the union 1184 against the first round's 1349, and with the option 1349 -> 1618
+    matches, 247 of the 269 new ones within 1 px of the true epipolar lines."""
+    out = _gt_consistent_counts(tmp_path, "view_01.png", "view_02.png", "guided_epipolar_add", 1.0,
+                                guided_epipolar_px=0.35)
     (n0, good0), (n1, good1) = out[False], out[True]
     assert n1 > 1.1 * n0, out
     assert good1 - good0 >= 0.8 * (n1 - n0), out
