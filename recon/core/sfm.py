@@ -330,8 +330,9 @@ FINAL_BA_LOSSES = ("none", "cauchy", "soft_l1", "huber")
 
 
 PRINCIPAL_POINT_MODES = ("fixed", "refine", "auto")
-"""`FinalBaConfig.principal_point`: fixed = COLMAP's image centre (default); refine = freed in the
-final adjustment; auto = freed only where the views determine it (`PP_SIGMA_MAX`)."""
+"""`FinalBaConfig.principal_point`: auto (default since 2026-12-08) = freed only where the views
+determine it (`PP_SIGMA_MAX`); fixed = COLMAP's image centre; refine = always freed in the final
+adjustment."""
 
 PP_SIGMA_MAX = 0.002
 """Auto principal point: it is freed only when every camera's principal point is determined by
