@@ -412,3 +412,49 @@ def test_evaluate_accepts_4x4_and_translation_error():
     assert all(p["rot_err_deg"] < 1e-6 for p in rows.values())
     assert rows[("img00.jpg", "img01.jpg")]["trans_err_deg"] > 1.0
     assert rows[("img00.jpg", "img02.jpg")]["trans_err_deg"] < 1e-6
+
+
+def _perturbed(poses: dict[str, np.ndarray], deg: float, seed: int) -> dict[str, np.ndarray]:
+    """Each camera turned about its own centre by `deg` about a random axis (seeded)."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for n, P in poses.items():
+        C = -P[:, :3].T @ P[:, 3]
+        Rn = rot(rng.normal(size=3), deg) @ P[:, :3]
+        out[n] = np.concatenate([Rn, (-Rn @ C)[:, None]], 1)
+    return out
+
+
+def test_paired_rotation_gap_tells_a_worse_model_from_the_images_drawn():
+    from recon.eval.evaluate import paired_rotation_gap
+
+    gt = ring(14)
+    pairs = {k: evaluate_model(_perturbed(gt, deg, seed), gt)["pairs"]
+             for k, deg, seed in (("worse", 0.2, 1), ("good", 0.1, 2), ("good_too", 0.1, 3))}
+    g = paired_rotation_gap(pairs["worse"], pairs["good"])
+    assert g is not None and g["num_pairs"] == 91 and g["num_images"] == 14
+    assert g["gap"] == pytest.approx(g["median_a"] - g["median_b"]) and g["gap"] > 0.05
+    assert 0 < g["ci_low"] <= g["gap"] <= g["ci_high"]  # twice the noise: a real gap
+    assert g["a_below_b"] < 91 // 4
+    same = paired_rotation_gap(pairs["good"], pairs["good_too"])
+    assert same is not None and same["ci_low"] < 0 < same["ci_high"]  # the same noise: no gap
+    assert paired_rotation_gap(pairs["good"], pairs["good_too"]) == same  # deterministic for a seed
+    # the errors are the cameras', so resampling the images, not the pairs, sets the width
+    ea, eb = (np.array([p["rot_err_deg"] for p in pairs[k]]) for k in ("good", "good_too"))
+    rng = np.random.default_rng(0)
+    draws = rng.integers(0, len(ea), (2000, len(ea)))
+    by_pairs = np.median(ea[draws], axis=1) - np.median(eb[draws], axis=1)
+    pair_width = float(np.subtract(*np.percentile(by_pairs, [97.5, 2.5])))
+    assert same["ci_high"] - same["ci_low"] > 1.3 * pair_width
+    own = paired_rotation_gap(pairs["good"], pairs["good"])
+    assert own is not None and own["gap"] == own["ci_low"] == own["ci_high"] == 0.0
+
+
+def test_paired_rotation_gap_needs_shared_finite_pairs():
+    from recon.eval.evaluate import paired_rotation_gap
+
+    gt = ring(4)
+    full = evaluate_model(gt, gt)["pairs"]
+    two = {n: gt[n] for n in list(gt)[:2]}  # the other images unregistered: infinite errors
+    assert paired_rotation_gap(full, evaluate_model(two, gt)["pairs"]) is None
+    assert paired_rotation_gap(full, []) is None

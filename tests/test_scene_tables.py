@@ -64,3 +64,19 @@ def test_readme_table_shows_distinct_inliers_where_the_results_hold_them():
     cells = {ln.split("|")[2].strip(): ln.strip("|").split("|")[col].strip() for ln in lines[2:]}
     assert cells["stock default"] == "100 / nan (80 / nan distinct)"
     assert cells["extra-affine"] == "100 / nan"  # written before distinct inliers were counted
+
+
+def test_compare_table_shows_the_rotation_gap_to_stock_with_its_interval():
+    res = {"scene": "/x/castle", "methods": _methods(), "config": {"max_size": 1000, "pairs": "exhaustive"},
+           "gt": {"source": "strecha"},
+           "rotation_gap_by_stock": {"default": {"gap": 0.0084, "ci_low": 0.0036, "ci_high": 0.0143, "a_below_b": 88,
+                                                 "num_pairs": 435},
+                                     "high": None}}
+    res["methods"]["extra_affine"]["rel_rot_err_deg_median"] = 0.06979
+    console = Console(width=250, record=True)
+    console.print(compare_table(res))
+    text = console.export_text()
+    line = next(ln for ln in text.splitlines() if "minus stock-default" in ln)
+    assert "+0.0084 [+0.0036, +0.0143], lower on 88/435" in line
+    assert "minus stock-high" not in text  # no gap where a model is missing
+    assert "0.0698" in text  # four decimals: the real scenes' errors are a few hundredths of a degree

@@ -13,14 +13,21 @@ writes `OUT/compare.json` atomically:
     {"scene", "out", "config", "gt", "warnings",
      "stock": {...}, "extra_affine": {...},          # report.json keys + pair summary + GT keys
      "methods": {"stock-<preset>": {...}, ..., "extra_affine": {...}},
-     "clouds": {...}, "clouds_by_stock": {"<preset>": {...}}}
+     "clouds": {...}, "clouds_by_stock": {"<preset>": {...}},
+     "rotation_gap_by_stock": {"<preset>": {...} | None}}
+
+`rotation_gap_by_stock` (with GT): ours' median relative rotation error minus each stock preset's
+over the pairs both models hold, with a 95 % interval from resampling the images
+(`evaluate.paired_rotation_gap`): whether a gap of hundredths of a degree is the pipelines' or the
+particular images'.
 
 `stock` is the first preset's run. Each method object holds the keys of `recon run`'s
 report.json plus `verified_pairs`, `inliers_per_pair_mean/median`, `peak_mb` (the absolute RSS
 peak during that run, sampled by `matching.memory.PeakRss`: `ru_maxrss` would carry an earlier
 run's peak into later ones; the run's own figure is kept as `report_peak_mb`), and, with GT,
 `rel_rot_err_deg_median`, `rel_trans_err_deg_median`, `auc_5/10/20`, `center_err_median`,
-`center_err_rel_median` (the full evaluation without per-pair rows is under `gt_eval`), and
+`center_err_rel_median` (the full evaluation without per-pair rows is under `gt_eval`; the
+per-pair rotation errors under `gt_pair_rot_err`, `[image0, image1, degrees]`), and
 `correct_per_pair`: on a rendered scene (`gt/scene.json` holds its planes) the mean verified
 correspondences per verified pair that lie within sqrt(3) px of the exact transfer
 (`recon.eval.gt_planes`) and `correct_median_px`, their median distance from it, else None.
@@ -46,6 +53,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -60,7 +68,7 @@ from recon.config import DEFAULT_MAX_SIZE, SfmConfig
 from recon.core.jsonio import write_json_atomic
 from recon.core.scene import IMAGE_EXTS
 from recon.errors import UserError
-from recon.eval.evaluate import center, evaluate_model, umeyama
+from recon.eval.evaluate import center, evaluate_model, paired_rotation_gap, umeyama
 from recon.eval.gt import find_gt, gt_source
 from recon.eval.gt_planes import correct_counts, correct_error_median, correct_per_pair, transfer_errors
 
@@ -139,7 +147,10 @@ def method_result(method: str, report: dict[str, Any] | None, peak: PeakRss, gt,
     row["gt_eval"] = None
     if gt is not None and report is not None:
         rec = load_model(out / "sparse" / "0") if row.get("status") == "ok" else None
-        ev = evaluate_model(rec, gt, with_pairs=False)
+        ev = evaluate_model(rec, gt, with_pairs=True)
+        row["gt_pair_rot_err"] = [[p["image0"], p["image1"], p["rot_err_deg"]] for p in ev.pop("pairs")
+                                  if math.isfinite(p["rot_err_deg"])]
+        ev.pop("center_err", None)
         row["gt_eval"] = ev
         row.update({k: ev.get(k) for k in GT_KEYS})
     return row
@@ -350,8 +361,17 @@ def compare_scene(scene_dir: str | Path, out: str | Path | None = None, presets:
                               for p in presets}
     res["clouds"] = res["clouds_by_stock"][presets[0]]
     res["ratios"] = ratios(methods)
+    res["rotation_gap_by_stock"] = {p: rotation_gap(methods[OURS_KEY], methods[f"stock-{p}"]) for p in presets}
     write_json_atomic(out_dir / "compare.json", res)
     return res
+
+
+def rotation_gap(ours: dict[str, Any], stock: dict[str, Any]) -> dict[str, Any] | None:
+    """`evaluate.paired_rotation_gap` of two method rows' `gt_pair_rot_err` (ours minus stock), or
+    None without ground truth or shared pairs."""
+    rows = [[{"image0": a, "image1": b, "rot_err_deg": e} for a, b, e in m.get("gt_pair_rot_err") or []]
+            for m in (ours, stock)]
+    return paired_rotation_gap(rows[0], rows[1])
 
 
 def _ratio(a, b) -> float | None:
@@ -439,8 +459,14 @@ def compare_table(res: dict[str, Any]):
     row("peak MB (RSS)", lambda m: _f(m.get("peak_mb"), ".0f"))
     if res.get("gt"):
         t.add_section()
-        row("GT rel. rot. err ° (median)", lambda m: _f(m.get("rel_rot_err_deg_median"), ".2f"))
-        row("GT rel. trans. err ° (median)", lambda m: _f(m.get("rel_trans_err_deg_median"), ".2f"))
+        row("GT rel. rot. err ° (median)", lambda m: _f(m.get("rel_rot_err_deg_median"), ".4f"))
+        for preset, g in (res.get("rotation_gap_by_stock") or {}).items():
+            if g is not None:
+                cells = [""] * len(methods)
+                cells[list(methods).index(OURS_KEY)] = (f"{g['gap']:+.4f} [{g['ci_low']:+.4f}, {g['ci_high']:+.4f}]"
+                                                        f", lower on {g['a_below_b']}/{g['num_pairs']}")
+                t.add_row(f"  minus stock-{preset}'s (95 % CI, images resampled)", *cells)
+        row("GT rel. trans. err ° (median)", lambda m: _f(m.get("rel_trans_err_deg_median"), ".4f"))
         for k in ("auc_5", "auc_10", "auc_20"):
             row(f"GT AUC@{k[4:]}°", lambda m, k=k: _f(m.get(k), ".3f"))
         row("GT centre err (median)", lambda m: _f(m.get("center_err_median"), ".4f"))
