@@ -13,6 +13,8 @@ Methods (interleaved per pair, so every method of a pair runs under the same mac
   i.e. the matcher as it was before (every view of the 45-view grid on every searched side);
 * `extra-affine-exact-blur`: the default matcher with `views.simulate`'s exact anti-aliasing blur
   instead of blurring by halving (`views.blur_compress_x`; the steep views before 2026-12-07);
+* `extra-affine-two-warps`: the default matcher with the views at phi = 0 rotated-and-zoomed,
+  blurred, then compressed (two Lanczos warps; `views.FUSED_AXIS_WARP` off, before 2026-12-08);
 * `sift`, `orb`, `asift`, `aorb`: the baselines of `recon bench pairs` (stock 5 px RANSAC);
 * `--variant LABEL=KEY=VALUE[,KEY=VALUE]` (repeatable): the default matcher with
   `MatcherConfig.from_overrides` settings (a top-level field or a section's field:
@@ -55,23 +57,25 @@ TILT_ZOOMS = (0.5, 1.0)
 
 
 EXACT_BLUR = "extra-affine-exact-blur"
+TWO_WARPS = "extra-affine-two-warps"
+FLAG_METHODS = {EXACT_BLUR: "ANTIALIAS_HALVING", TWO_WARPS: "FUSED_AXIS_WARP"}
+"""Methods that run the default matcher with one of `matching.views`' module flags off."""
 
 
-class ExactBlur:
-    """A matcher run with `views.simulate`'s exact anti-aliasing blur (`views.ANTIALIAS_HALVING`
-    off for the call; the benchmark matches one pair at a time, so nothing else sees it)."""
+class FlagOff:
+    """A matcher run with a `matching.views` module flag off for the call (`ANTIALIAS_HALVING`:
+    the exact anti-aliasing blur; `FUSED_AXIS_WARP`: two warps for the views with phi = 0, as
+    before 2026-12-08); the benchmark matches one pair at a time, so nothing else sees it."""
 
-    name = EXACT_BLUR
-
-    def __init__(self, inner: PairMatcher):
-        self.inner = inner
+    def __init__(self, name: str, inner: PairMatcher):
+        self.name, self.inner, self.flag = name, inner, FLAG_METHODS[name]
 
     def match(self, store: FeatureStore, name0: str, name1: str) -> PairResult:
-        views.ANTIALIAS_HALVING = False
+        setattr(views, self.flag, False)
         try:
             return self.inner.match(store, name0, name1)
         finally:
-            views.ANTIALIAS_HALVING = True
+            setattr(views, self.flag, True)
 
 
 def median_seconds(rows: list[dict], method: str, dataset: str | None = None) -> float | None:
@@ -160,7 +164,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data_root", type=Path)
     ap.add_argument("--methods", default="extra-affine,extra-affine-grid,asift",
-                    help=f"comma-separated: extra-affine, extra-affine-grid, {EXACT_BLUR}, sift, orb, asift, aorb")
+                    help=f"comma-separated: extra-affine, extra-affine-grid, {EXACT_BLUR}, {TWO_WARPS}, sift, orb, asift, aorb")
     ap.add_argument("--json", type=Path, default=None, help="write the rows here")
     ap.add_argument("--only", default=None, help="only pairs whose name contains this text")
     ap.add_argument("--seed", type=int, default=0)
@@ -177,8 +181,8 @@ def main() -> None:
     methods += [label for label in variants if label not in VARIANTS and label not in methods]
     matchers: dict[str, PairMatcher] = {}
     for m in methods:
-        if m == EXACT_BLUR:
-            matchers[m] = ExactBlur(get_matcher("extra-affine", seed=args.seed))
+        if m in FLAG_METHODS:
+            matchers[m] = FlagOff(m, get_matcher("extra-affine", seed=args.seed))
         elif m in variants:
             try:
                 matchers[m] = get_matcher("extra-affine", seed=args.seed, **variants[m])
@@ -200,8 +204,9 @@ def main() -> None:
             run_pair(pairs[0], img0, img1, m, matchers[m])
     rows = run_bench(pairs, methods, th=DEFAULT_TH, json_path=args.json, matchers=matchers)
     print_report(rows, th=DEFAULT_TH)
-    shown = {**variants, EXACT_BLUR: {}} if EXACT_BLUR in methods else variants
-    before = EXACT_BLUR if EXACT_BLUR in methods else "extra-affine-grid"
+    flagged = [m for m in methods if m in FLAG_METHODS]
+    shown = {**variants, **{m: {} for m in flagged}}
+    before = flagged[0] if flagged else "extra-affine-grid"
     for line in ratio_lines(rows, shown, before) + variant_lines(rows, shown):
         print(line)
     if args.json is not None:

@@ -168,6 +168,10 @@ grid's t = 8 are where the wide blur cost most of the warp."""
 ANTIALIAS_HALVING = True
 """`simulate`'s default for `halving` (module level so that a benchmark can time both ways)."""
 
+FUSED_AXIS_WARP = True
+"""`simulate`'s default for `fused`: a view with phi = 0 is blurred on the original and warped
+once (module level so that a benchmark can time both ways)."""
+
 
 def blur_compress_x(img: NDArray[np.uint8], sigma: float, t: float, halving: bool = True
                     ) -> tuple[NDArray[np.uint8], int]:
@@ -201,13 +205,19 @@ def blur_compress_x(img: NDArray[np.uint8], sigma: float, t: float, halving: boo
 
 
 def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest",
-             antialias: bool = False, mask_erode_px: int = 3, halving: bool | None = None) -> SimulatedView:
+             antialias: bool = False, mask_erode_px: int = 3, halving: bool | None = None,
+             fused: bool | None = None) -> SimulatedView:
     """Warp `img` into the view. With `antialias`, blur along the compressed axis first.
 
     Without anti-aliasing this is one `warpAffine`. With it, the image is first rotated and
     zoomed (same interpolation), blurred along x by `antialias_sigma` (`blur_compress_x`, by
     halving where the blur is wide, unless `halving` is False; None = `ANTIALIAS_HALVING`), then
     compressed along x by 1/t with the same interpolation, matching ASIFT's order of operations.
+    A view with phi = 0 has nothing to rotate, so with `fused` (None = `FUSED_AXIS_WARP`) the
+    original is blurred along x by sigma / s (a Gaussian commutes with the zoom: the same blur in
+    the view's pixels) and warped once: a Lanczos `warpAffine` costs 64 taps a pixel, and the
+    zoomed intermediate was 2/3 of a fine view's warp (docs/decisions.md, "One warp for the
+    views without rotation").
     The mask marks pixels that come from the original, eroded by `mask_erode_px` so detectors
     do not fire on the canvas border.
     """
@@ -220,6 +230,13 @@ def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest
         A = np.array([[ow / w, 0.0, 0.5 * ow / w - 0.5], [0.0, oh / h, 0.5 * oh / h - 0.5]])
     elif sigma <= 0.0:
         out = cv2.warpAffine(img, A, (ow, oh), flags=flag, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    elif view.phi == 0.0 and (FUSED_AXIS_WARP if fused is None else fused):
+        # A = [[s / t, 0, 0], [0, s, 0]]: the blur in original px, then one warp from the
+        # (possibly decimated, x_orig = f x_tmp) blurred original
+        tmp, f = blur_compress_x(img, sigma / view.s, view.t / view.s, ANTIALIAS_HALVING if halving is None else halving)
+        A_tmp = A.copy()
+        A_tmp[0, 0] *= f
+        out = cv2.warpAffine(tmp, A_tmp, (ow, oh), flags=flag, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     else:
         rot = ViewParams(t=1.0, phi=view.phi, s=view.s)
         A_rot, (rw, rh) = view_affine((w, h), rot)

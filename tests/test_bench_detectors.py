@@ -60,7 +60,9 @@ def test_variant_lines_count_solved_pairs_and_compare_with_the_default():
     assert lines[1] == "root: solved 1/2, correct 65; against extra-affine: 2 pairs with more correct, 0 with fewer"
 
 
-def test_exact_blur_method_turns_halving_off_for_its_call_only():
+@pytest.mark.parametrize("method, flag", [("extra-affine-exact-blur", "ANTIALIAS_HALVING"),
+                                          ("extra-affine-two-warps", "FUSED_AXIS_WARP")])
+def test_flag_methods_turn_their_views_flag_off_for_their_call_only(method, flag):
     import matching.views as views
 
     seen = []
@@ -69,14 +71,15 @@ def test_exact_blur_method_turns_halving_off_for_its_call_only():
         name = "extra-affine"
 
         def match(self, store, name0, name1):
-            seen.append(views.ANTIALIAS_HALVING)
+            seen.append((views.ANTIALIAS_HALVING, views.FUSED_AXIS_WARP))
             if name0 == "bad":
                 raise RuntimeError("boom")
             return "result"
 
-    m = bench_pairs_speed.ExactBlur(Inner())
+    m = bench_pairs_speed.FlagOff(method, Inner())
     assert m.match(None, "a", "b") == "result"
     with pytest.raises(RuntimeError):
         m.match(None, "bad", "b")
-    assert seen == [False, False]
-    assert views.ANTIALIAS_HALVING is True  # restored after each call, raising or not
+    off = (flag != "ANTIALIAS_HALVING", flag != "FUSED_AXIS_WARP")  # only its own flag off
+    assert seen == [off, off]
+    assert views.ANTIALIAS_HALVING is True and views.FUSED_AXIS_WARP is True  # restored after each call, raising or not

@@ -159,7 +159,10 @@ def test_guided_round_under_h_keeps_precision_and_inliers(graf, settled):
 
 def test_guided_round_under_f_adds_f_consistent_matches(graf):
     store, H = graf
-    ctx, _ = _settled(store, replace(MatcherConfig.multiview(), workers=1))
+    # a 1.5 px band: at the default 1 px the F-filtered union of graf 1-2 is within a few matches
+    # of the first round (2866 against 2859 with two warps per view, equal with one), so the step
+    # keeps the first round there and the test would measure rounding, not the round
+    ctx, _ = _settled(store, replace(MatcherConfig.multiview(), workers=1, guided_epipolar_px=1.5))
     fast = fast_path(ctx)
     first = ctx.to_result(fast)
     assert not FinalHomography().applies(ctx, fast, first) and not GuidedHomography().applies(ctx, fast, first)
