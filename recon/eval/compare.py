@@ -527,7 +527,7 @@ def scenes_table(results: list[dict[str, Any]], max_size: int):
             t.add_row(scene, name, reg, str(r.get("num_points3D", 0)),
                       _f(r.get("mean_track_length"), ".2f"), _f(r.get("mean_reprojection_error"), ".2f"),
                       _pct(inconsistent_share(r)), _f(r.get("seconds_total"), ".1f"), _f(r.get("peak_mb"), ".0f"),
-                      _f(r.get("rel_rot_err_deg_median"), ".2f"), _f(r.get("auc_5"), ".3f"),
+                      _f(r.get("rel_rot_err_deg_median"), ".4f"), _f(r.get("auc_5"), ".3f"),
                       _f(r.get("auc_10"), ".3f"), cmed, ccomp)
         for name, q in res.get("ratios", {}).items():
             t.add_row(scene, f"[italic]{name}[/italic]", _f(q["registered"], ".2f") + "x",
