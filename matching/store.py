@@ -27,9 +27,10 @@ from numpy.typing import NDArray
 
 from .features import Features
 
-CACHE_VERSION = "2"
+CACHE_VERSION = "3"
 """Part of every disk cache entry's name and stored key; bumped when what a key computes changes
-(2: OpenCV SIFT keypoints at pixel centres, `DetectorConfig.centre_keypoints`), so entries of an
+(2: OpenCV SIFT keypoints at pixel centres, `DetectorConfig.centre_keypoints`; 3: a view with
+phi = 0 blurred on the original and warped once, `views.FUSED_AXIS_WARP`), so entries of an
 older version are recomputed, never reused."""
 
 

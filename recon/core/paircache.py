@@ -23,7 +23,9 @@ from matching.types import CoarseScore, PairResult, ViewParams
 from recon.core.jsonio import replaced_atomically
 from recon.core.scene import SceneImage
 
-PAIR_CACHE_VERSION = "2"  # 2: OpenCV SIFT keypoints at pixel centres (matching.features.DetectorConfig.centre_keypoints)
+# 2: OpenCV SIFT keypoints at pixel centres (matching.features.DetectorConfig.centre_keypoints);
+# 3: one warp for the views with phi = 0 (matching.views.FUSED_AXIS_WARP)
+PAIR_CACHE_VERSION = "3"
 
 
 def result_to_full_res(r: PairResult, im0: SceneImage, im1: SceneImage) -> PairResult:
