@@ -228,10 +228,10 @@ def paired_rotation_gap(pairs_a: Sequence[Mapping[str, Any]], pairs_b: Sequence[
     that resamples the images, not the pairs: every pair of an image shares that camera's error, so
     a scene's pairs are far from independent samples, and a pair bootstrap's interval is too
     narrow (2.5x on castle_P30's ours-against-stock, 1.7x on image-level noise in the tests). Each
-    draw picks as many images as there are, with replacement, and
-    weighs a pair by the product of its two images' counts. `a_below_b` counts the pairs where a's
-    error is the smaller. None when fewer than 3 pairs or 3 images are shared. Deterministic for a
-    `seed`. Why: two pipelines' median errors on a 30-image scene differ by hundredths of a degree,
+    draw picks as many images as there are, with replacement, and weighs a pair by the product of
+    its two images' counts (a draw's medians are weighted lower medians). `a_below_b` counts the
+    pairs where a's error is the smaller. None when fewer than 3 pairs or 3 images are shared.
+    Deterministic for a `seed`. Why: two pipelines' median errors on a 30-image scene differ by hundredths of a degree,
     and whether such a gap is the models' or the particular images' is what a reader needs to know
     (README, "Consistent tracks": castle_P30's gap to stock)."""
     ea = {(str(p["image0"]), str(p["image1"])): float(p["rot_err_deg"]) for p in pairs_a}
