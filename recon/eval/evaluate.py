@@ -231,9 +231,9 @@ def paired_rotation_gap(pairs_a: Sequence[Mapping[str, Any]], pairs_b: Sequence[
     draw picks as many images as there are, with replacement, and weighs a pair by the product of
     its two images' counts (a draw's medians are weighted lower medians). `a_below_b` counts the
     pairs where a's error is the smaller. None when fewer than 3 pairs or 3 images are shared.
-    Deterministic for a `seed`. Why: two pipelines' median errors on a 30-image scene differ by hundredths of a degree,
-    and whether such a gap is the models' or the particular images' is what a reader needs to know
-    (README, "Consistent tracks": castle_P30's gap to stock)."""
+    Deterministic for a `seed`. Why: two pipelines' median errors on a 30-image scene differ by
+    hundredths of a degree, and whether such a gap is the models' or the particular images' is
+    what a reader needs to know (README, "Consistent tracks": castle_P30's gap to stock)."""
     ea = {(str(p["image0"]), str(p["image1"])): float(p["rot_err_deg"]) for p in pairs_a}
     eb = {(str(p["image0"]), str(p["image1"])): float(p["rot_err_deg"]) for p in pairs_b}
     keys = sorted(k for k in ea.keys() & eb.keys() if math.isfinite(ea[k]) and math.isfinite(eb[k]))
