@@ -225,6 +225,7 @@ def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest
     A, (ow, oh) = view_affine((w, h), view)
     flag = _CV_INTERP[interp]
     sigma = antialias_sigma(view) if antialias else 0.0
+    halve = ANTIALIAS_HALVING if halving is None else halving
     if view.t == 1.0 and view.phi == 0.0 and view.s < 1.0:  # a pure downscale: area-average it
         out = cv2.resize(img, (ow, oh), interpolation=cv2.INTER_AREA)
         A = np.array([[ow / w, 0.0, 0.5 * ow / w - 0.5], [0.0, oh / h, 0.5 * oh / h - 0.5]])
@@ -233,7 +234,7 @@ def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest
     elif view.phi == 0.0 and (FUSED_AXIS_WARP if fused is None else fused):
         # A = [[s / t, 0, 0], [0, s, 0]]: the blur in original px, then one warp from the
         # (possibly decimated, x_orig = f x_tmp) blurred original
-        tmp, f = blur_compress_x(img, sigma / view.s, view.t / view.s, ANTIALIAS_HALVING if halving is None else halving)
+        tmp, f = blur_compress_x(img, sigma / view.s, view.t / view.s, halve)
         A_tmp = A.copy()
         A_tmp[0, 0] *= f
         out = cv2.warpAffine(tmp, A_tmp, (ow, oh), flags=flag, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -241,7 +242,7 @@ def simulate(img: NDArray[np.uint8], view: ViewParams, interp: Interp = "nearest
         rot = ViewParams(t=1.0, phi=view.phi, s=view.s)
         A_rot, (rw, rh) = view_affine((w, h), rot)
         tmp = cv2.warpAffine(img, A_rot, (rw, rh), flags=flag, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        tmp, f = blur_compress_x(tmp, sigma, view.t, ANTIALIAS_HALVING if halving is None else halving)
+        tmp, f = blur_compress_x(tmp, sigma, view.t, halve)
         # x' = x / t about pixel centres: compose into one affine from the original
         S = np.array([[1.0 / view.t, 0.0, 0.0], [0.0, 1.0, 0.0]])
         A2 = S @ np.vstack([A_rot, [0, 0, 1]])

@@ -213,6 +213,11 @@ def evaluate_model(estimate: Any, gt: Mapping[str, Any], with_pairs: bool = True
 
 
 # paired comparison of two models ---------------------------------------------------------------
+BOOT_CELLS = 4_000_000
+"""`paired_rotation_gap` weighs this many (draw, pair) cells at a time (32 MB of float64), so a
+scene of thousands of images (millions of pairs) does not hold all 2000 draws' weights at once."""
+
+
 def _weighted_lower_median(values_sorted: NDArray[np.float64], weights: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per row of `weights` (draws x values, aligned with the ascending `values_sorted`), the
     smallest value whose cumulative weight reaches half the row's total."""
@@ -247,12 +252,17 @@ def paired_rotation_gap(pairs_a: Sequence[Mapping[str, Any]], pairs_b: Sequence[
     i1 = np.array([index[k[1]] for k in keys])
     rng = np.random.default_rng(seed)
     counts = rng.multinomial(len(names), np.full(len(names), 1.0 / len(names)), size=n_boot).astype(np.float64)
-    w = counts[:, i0] * counts[:, i1]  # draws x pairs
     oa, ob = np.argsort(a, kind="stable"), np.argsort(b, kind="stable")
-    keep = w.sum(axis=1) > 0  # a draw that pairs no two images says nothing
-    gaps = _weighted_lower_median(a[oa], w[keep][:, oa]) - _weighted_lower_median(b[ob], w[keep][:, ob])
+    parts = []
+    step = max(1, BOOT_CELLS // len(keys))  # draws at a time: the weights stay within BOOT_CELLS floats
+    for start in range(0, n_boot, step):
+        c = counts[start:start + step]
+        c = c[(c[:, i0] * c[:, i1]).sum(axis=1) > 0]  # a draw that pairs no two images says nothing
+        parts.append(_weighted_lower_median(a[oa], c[:, i0[oa]] * c[:, i1[oa]])
+                     - _weighted_lower_median(b[ob], c[:, i0[ob]] * c[:, i1[ob]]))
+    gaps = np.concatenate(parts)
     lo, hi = np.percentile(gaps, [50 * (1 - level), 50 * (1 + level)])
     return {"num_pairs": len(keys), "num_images": len(names), "median_a": float(np.median(a)),
             "median_b": float(np.median(b)), "gap": float(np.median(a) - np.median(b)),
             "ci_low": float(lo), "ci_high": float(hi), "level": level, "a_below_b": int(np.sum(a < b)),
-            "n_boot": int(keep.sum()), "seed": seed}
+            "n_boot": len(gaps), "seed": seed}
